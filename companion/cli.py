@@ -1,0 +1,129 @@
+"""The `companion` command: simulate one scenario, or run the paper's whole study.
+
+Exit status: 0 on success, 2 for a bad scenario file or arguments (one line on standard error
+that names the key), 1 for anything else. Standard output carries only results; progress and
+messages go to standard error. Set COMPANION_DEBUG=1 to see tracebacks.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from collections.abc import Sequence
+from importlib import resources
+from pathlib import Path
+
+from companion.errors import CompanionError, ConfigError
+
+EXIT_OK, EXIT_ERROR, EXIT_USAGE = 0, 1, 2
+
+
+def shipped_scenarios() -> dict[str, Path]:
+    """The scenario files that ship with the package, by name."""
+    folder = Path(str(resources.files("companion") / "scenarios"))
+    return {p.stem: p for p in sorted(folder.glob("*.toml"))}
+
+
+def resolve_scenario(arg: str) -> Path:
+    """A scenario path from a file path or the name of a shipped scenario."""
+    path = Path(arg)
+    if path.exists():
+        return path
+    shipped = shipped_scenarios()
+    if arg in shipped:
+        return shipped[arg]
+    names = ", ".join(shipped) or "none"
+    raise ConfigError(arg, f"no such scenario file, and no shipped scenario of that name ({names})")
+
+
+def _simulate(args: argparse.Namespace) -> int:
+    from companion.sim.run import simulate
+    from companion.sim.scenario import load_scenario
+    from companion.sim.study import progress_bar
+
+    scenario = load_scenario(resolve_scenario(args.scenario), seed=args.seed)
+    with progress_bar(scenario.name, unit="step") as bar:
+        result = simulate(scenario, progress=bar.update_to)
+    summary = result.summary()
+    if args.out is not None:
+        from companion.sim.plots import plot_run
+
+        args.out.mkdir(parents=True, exist_ok=True)
+        for path in plot_run(result, args.out):
+            print(f"wrote {path}", file=sys.stderr)
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        width = max(map(len, summary))
+        for key, value in summary.items():
+            shown = f"{value:.4g}" if isinstance(value, float) else str(value)
+            print(f"{key:<{width}}  {shown}")
+    return EXIT_OK
+
+
+def _study(args: argparse.Namespace) -> int:
+    from companion.sim.study import run_study
+
+    run_study(seeds=args.seeds, out_dir=args.out, jobs=args.jobs, only=args.only)
+    return EXIT_OK
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of every subcommand."""
+    parser = argparse.ArgumentParser(prog="companion", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    sim = sub.add_parser("simulate", help="run one scenario (filter only, synthetic measurements)")
+    sim.add_argument("scenario", help="a scenario TOML file, or the name of a shipped scenario")
+    sim.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
+    sim.add_argument("--json", action="store_true", help="print the result as one JSON object")
+    sim.add_argument("--out", type=Path, default=None, help="write plots to this directory")
+    sim.set_defaults(run=_simulate)
+
+    study = sub.add_parser("study", help="the paper's whole simulation study, Monte Carlo")
+    study.add_argument("--seeds", type=_positive_int, default=10, help="seeds per experiment")
+    study.add_argument("--out", type=Path, default=Path("out/study"), help="output directory")
+    study.add_argument("--jobs", type=_positive_int, default=os.cpu_count() or 1,
+                       help="worker processes (default: one per core)")
+    study.add_argument("--only", default=None,
+                       help="run only the experiments whose scenario name contains this text")
+    study.set_defaults(run=_study)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the `companion` command."""
+    args = build_parser().parse_args(argv)
+    try:
+        code: int = args.run(args)
+        return code
+    except ConfigError as exc:
+        print(f"companion: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except (CompanionError, OSError) as exc:
+        if os.environ.get("COMPANION_DEBUG"):
+            raise
+        print(f"companion: error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    except KeyboardInterrupt:
+        print("companion: interrupted", file=sys.stderr)
+        return EXIT_ERROR
+    except Exception as exc:  # the last line of defence: no traceback at a user
+        if os.environ.get("COMPANION_DEBUG"):
+            raise
+        print(f"companion: internal error: {type(exc).__name__}: {exc} "
+              "(set COMPANION_DEBUG=1 for the traceback)", file=sys.stderr)
+        return EXIT_ERROR
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Planners (pure: robot pose, mixture, tracks, world -> next waypoint)."""

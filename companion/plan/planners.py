@@ -1,0 +1,130 @@
+"""The paper's planners (Section Planning): lawn mower, nearest-Gaussian and largest-Gaussian.
+
+Each planner is a pure function of (robot position, mixture, tracks, world, progress) that returns
+the next waypoint (or None: stay) and its new progress counter; only the lawn mower uses progress.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.errors import ConfigError
+from companion.plan.world import World
+from companion.sat.mixture import Mixture
+from companion.sat.tracks import Tracks
+
+FloatArray = NDArray[np.float64]
+
+
+class Planner(Protocol):
+    """next waypoint = planner(robot, mixture, tracks, world, progress)."""
+
+    def next_waypoint(
+        self, robot_xy: FloatArray, mixture: Mixture, tracks: Tracks, world: World, progress: int
+    ) -> tuple[FloatArray | None, int]:
+        """The waypoint to fly to now (None: hold) and the planner's new progress."""
+        ...
+
+    def finished(self, progress: int) -> bool:
+        """Whether the plan has nothing left to do."""
+        ...
+
+
+def lawnmower_path(
+    world: World, start_xy: FloatArray, lane_spacing_m: float, sweeps: int
+) -> FloatArray:
+    """Waypoints of `sweeps` boustrophedon passes over the world, each returning to start.
+
+    Lanes run north-south at x = s/2, 3s/2, ... (s = lane spacing) so that a sensor that sees
+    s/2 to each side covers the whole width; the last lane is moved inside the world if needed.
+    """
+    if lane_spacing_m <= 0:
+        raise ConfigError("robot.lane_spacing", "must be > 0")
+    lanes = np.arange(lane_spacing_m / 2.0, world.width_m, lane_spacing_m)
+    if lanes.size == 0:
+        lanes = np.array([world.width_m / 2.0])
+    points: list[list[float]] = []
+    for _ in range(sweeps):
+        for i, x in enumerate(lanes):
+            ys = (0.0, world.height_m) if i % 2 == 0 else (world.height_m, 0.0)
+            points += [[float(x), ys[0]], [float(x), ys[1]]]
+        points.append([float(start_xy[0]), float(start_xy[1])])
+    return np.asarray(points, dtype=np.float64)
+
+
+@dataclass(frozen=True, slots=True)
+class LawnMower:
+    """Fly the precomputed lawn-mower waypoints in order; progress is the next waypoint's index."""
+
+    path_xy: FloatArray
+    reached_m: float = 1e-6
+
+    def next_waypoint(
+        self, robot_xy: FloatArray, mixture: Mixture, tracks: Tracks, world: World, progress: int
+    ) -> tuple[FloatArray | None, int]:
+        """The current waypoint, advancing past those already reached."""
+        while progress < len(self.path_xy) and (
+            np.hypot(*(self.path_xy[progress] - robot_xy)) <= self.reached_m
+        ):
+            progress += 1
+        if progress >= len(self.path_xy):
+            return None, progress
+        return self.path_xy[progress], progress
+
+    def finished(self, progress: int) -> bool:
+        """True once every waypoint has been reached."""
+        return progress >= len(self.path_xy)
+
+
+@dataclass(frozen=True, slots=True)
+class NearestGaussian:
+    """Drive to the mean of the nearest component of the mixture."""
+
+    def next_waypoint(
+        self, robot_xy: FloatArray, mixture: Mixture, tracks: Tracks, world: World, progress: int
+    ) -> tuple[FloatArray | None, int]:
+        """The nearest component mean inside the world, or None for an empty mixture."""
+        if mixture.size == 0:
+            return None, progress
+        dist = np.hypot(*(mixture.means[:, :2] - robot_xy).T)
+        return world.clip(mixture.means[int(np.argmin(dist)), :2]), progress
+
+    def finished(self, progress: int) -> bool:
+        """Never: it tracks for as long as it runs."""
+        return False
+
+
+@dataclass(frozen=True, slots=True)
+class LargestGaussian:
+    """Drive to the mean of the component with the largest covariance (largest ellipse area)."""
+
+    def next_waypoint(
+        self, robot_xy: FloatArray, mixture: Mixture, tracks: Tracks, world: World, progress: int
+    ) -> tuple[FloatArray | None, int]:
+        """The mean of the component whose position covariance has the largest determinant."""
+        if mixture.size == 0:
+            return None, progress
+        pos = mixture.covs[:, :2, :2]
+        area = pos[:, 0, 0] * pos[:, 1, 1] - pos[:, 0, 1] * pos[:, 1, 0]
+        return world.clip(mixture.means[int(np.argmax(area)), :2]), progress
+
+    def finished(self, progress: int) -> bool:
+        """Never: it searches for as long as it runs."""
+        return False
+
+
+def move_towards(
+    robot_xy: FloatArray, waypoint_xy: FloatArray | None, max_step_m: float
+) -> FloatArray:
+    """The robot's next position: up to max_step_m straight towards the waypoint."""
+    if waypoint_xy is None:
+        return robot_xy
+    delta = waypoint_xy - robot_xy
+    dist = float(np.hypot(*delta))
+    if dist <= max_step_m:
+        return np.array(waypoint_xy, dtype=np.float64)
+    return robot_xy + delta * (max_step_m / dist)

@@ -1,0 +1,189 @@
+"""One step of GM-PHD search and tracking (the paper's flowchart), as a pure function of its inputs.
+
+predict (linear / GP) -> update with the limited FOV (no detection, push rule, detections) ->
+prune and merge -> measurement-driven birth -> state extraction -> track maintenance.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.errors import InputError
+from companion.sat.birth import BirthWeight, birth, birth_weights
+from companion.sat.extract import extract
+from companion.sat.fov import Region
+from companion.sat.gp import GpParams, GpPredictor
+from companion.sat.mixture import NO_LABEL, Mixture, check_covariances
+from companion.sat.predict import LinearModel, apply_gp, predict_linear, transition
+from companion.sat.reduce import merge, prune
+from companion.sat.tracks import TrackParams, Tracks, maintain
+from companion.sat.update import PushMode, PushRule, detection, no_detection, visibility
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True)
+class SatParams:
+    """Every parameter of the filter; defaults are the paper's simulation values."""
+
+    p_survive: float = 1.0
+    p_detect: float = 0.98  # p(D|F): detection probability of a target inside the FOV
+    clutter_per_scan: float = 0.1  # expected false positives per scan, uniform in the FOV
+    push: PushRule | None = PushRule()  # the limited-FOV update rule, None to switch it off
+    extract_weight: float = 0.5
+    prune_weight: float = 1e-3
+    merge_distance_sq: float = 10.0  # Vo & Ma's U, on the squared Mahalanobis distance
+    max_components: int = 100
+    use_gp: bool = True  # GP regression for components of confirmed tracks
+    linear_model: LinearModel = LinearModel.CONSTANT_POSITION
+    q_m2_per_s: float = 0.01  # process noise of the linear model
+    birth: BirthWeight = BirthWeight.ADAPTIVE
+    birth_weight: float = 1.0
+    velocity_var_m2_s2: float = 1.0  # velocity prior of a new component in a 4-D state
+    gp: GpParams = field(default_factory=GpParams)
+    tracks: TrackParams = field(default_factory=TrackParams)
+
+
+@dataclass(frozen=True, slots=True)
+class Scan:
+    """What the sensor reported for one step, in the filter's ground frame (metres).
+
+    `region` is the ground area that this frame really covered, or None when no frame was
+    processed (blind: predict only, no no-detection update that would erase unseen targets).
+    `sensor_xy` is the centre the push rule pushes away from (the robot's ground position).
+    """
+
+    t_s: float
+    region: Region | None
+    measurements_xy: FloatArray
+    r_cov: FloatArray
+    sensor_xy: FloatArray
+
+
+@dataclass(frozen=True, slots=True)
+class SatState:
+    """The estimator's whole state: time, mixture (Layers 1-2) and tracks (Layer 3)."""
+
+    t_s: float
+    mixture: Mixture
+    tracks: Tracks
+
+
+@dataclass(frozen=True, slots=True)
+class StepReport:
+    """What one step did, for logs and counters."""
+
+    estimates: int
+    dropped_measurements: int
+    blind: bool
+
+
+def initial_state(mixture: Mixture, t_s: float, params: SatParams) -> SatState:
+    """The state before the first step: the initial belief and no tracks."""
+    return SatState(t_s, mixture, Tracks.empty(mixture.dim, params.gp.window))
+
+
+def _checked_measurements(scan: Scan) -> tuple[FloatArray, int]:
+    """The finite rows of the scan's measurements and how many rows were dropped."""
+    z = np.asarray(scan.measurements_xy, dtype=np.float64)
+    if z.size == 0:
+        return np.zeros((0, 2)), 0
+    if z.ndim != 2 or z.shape[1] != 2:
+        raise InputError(f"scan measurements: expected shape (m, 2), got {z.shape}")
+    finite = np.all(np.isfinite(z), axis=1)
+    return z[finite], int(z.shape[0] - finite.sum())
+
+
+def _predict(state: SatState, dt_s: float, params: SatParams, gp: GpPredictor) -> Mixture:
+    """Linear prediction for every component, GP prediction for those of confirmed tracks."""
+    prior = state.mixture
+    f, q = transition(params.linear_model, dt_s, params.q_m2_per_s)
+    predicted = predict_linear(prior, f, q, params.p_survive)
+    tracks = state.tracks
+    if not params.use_gp or tracks.size == 0 or prior.size == 0:
+        return predicted
+    comp = np.flatnonzero(prior.labels != NO_LABEL)
+    rows = np.searchsorted(tracks.ids, prior.labels[comp])  # track ids are kept sorted
+    rows = np.minimum(rows, tracks.size - 1)
+    usable = (
+        (tracks.ids[rows] == prior.labels[comp])
+        & tracks.confirmed[rows]
+        & (tracks.win_count[rows] >= 2)
+    )
+    comp, rows = comp[usable], rows[usable]
+    if comp.size == 0:
+        return predicted
+    mean, var, velocity = gp.predict(
+        tracks.win_t_s[rows], tracks.win_xy[rows], tracks.win_count[rows], state.t_s + dt_s
+    )
+    return apply_gp(predicted, prior, comp, mean, var, velocity)
+
+
+def step(
+    state: SatState, scan: Scan, params: SatParams, gp: GpPredictor
+) -> tuple[SatState, StepReport]:
+    """Advance the estimator to scan.t_s with the scan's measurements (one pass of the flowchart).
+
+    `gp` only memoises GP solves; the result does not depend on its contents.
+    """
+    if not np.isfinite(scan.t_s) or scan.t_s < state.t_s:
+        raise InputError(f"scan time {scan.t_s!r} s: must be finite and >= {state.t_s} s")
+    z, dropped = _checked_measurements(scan)
+    sensor_xy = np.asarray(scan.sensor_xy, dtype=np.float64)
+    region = scan.region
+    if region is not None and not np.all(np.isfinite(sensor_xy)):
+        region = None  # no usable pose: this frame tells nothing about where we looked
+    if region is None:
+        dropped += z.shape[0]
+        z = np.zeros((0, 2))
+    r_cov = np.asarray(scan.r_cov, dtype=np.float64)
+    if r_cov.shape != (2, 2):
+        raise InputError(f"scan measurement covariance: expected shape (2, 2), got {r_cov.shape}")
+    check_covariances(r_cov[None], "scan measurement covariance")
+
+    predicted = _predict(state, scan.t_s - state.t_s, params, gp)
+    dim = predicted.dim
+    if region is None:
+        posterior = predicted
+        detected = np.zeros(predicted.size, dtype=bool)
+        explained = np.zeros(0)
+        clutter = newborn = 0.0
+    else:
+        area = region.area_m2
+        clutter = params.clutter_per_scan / area  # kappa(z): false positives uniform in the FOV
+        newborn = params.birth_weight / area if params.birth is BirthWeight.ADAPTIVE else 0.0
+        with_mean = params.push is not None and params.push.mode is PushMode.MOMENT
+        vis = visibility(predicted, region, params.p_detect, with_mean)
+        missed = no_detection(predicted, vis, sensor_xy, params.push)
+        found = detection(predicted, vis.p_d, z, r_cov, clutter, newborn)
+        posterior = Mixture.concat([missed, found.children])
+        detected = np.arange(posterior.size) >= missed.size
+        explained = found.explained
+
+    pruned, kept = prune(posterior, params.prune_weight)
+    merged = merge(pruned, params.merge_distance_sq, params.max_components)
+    reduced = merged.mixture
+    # A merged component owes its weight to a detection when most of it came from detections.
+    in_group = merged.group_of >= 0
+    from_detection = np.bincount(
+        merged.group_of[in_group],
+        weights=(pruned.weights * detected[kept])[in_group],
+        minlength=reduced.size,
+    )
+    detected_reduced = from_detection > 0.5 * reduced.weights
+
+    if z.shape[0]:
+        w_new = birth_weights(params.birth, params.birth_weight, explained, clutter, newborn)
+        born = birth(z, w_new, r_cov, params.velocity_var_m2_s2, dim)
+        reduced = Mixture.concat([reduced, born])
+        detected_reduced = np.concatenate([detected_reduced, np.ones(born.size, dtype=bool)])
+
+    est_index = extract(reduced, params.extract_weight)
+    tracks, labelled = maintain(
+        state.tracks, reduced, est_index, detected_reduced, scan.t_s, params.tracks
+    )
+    report = StepReport(int(est_index.size), dropped, region is None)
+    return SatState(scan.t_s, labelled, tracks), report

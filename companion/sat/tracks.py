@@ -1,0 +1,342 @@
+"""Track maintenance (Layer 3): track-to-estimate association after Panta et al. 2009.
+
+Every live track has a stable id. Each step, the estimates extracted from the mixture continue
+the tracks they gate with (squared Mahalanobis distance <= the merge threshold U), preferring the
+track whose id the estimate's component carries as its label; a second estimate on one track (a
+split) and an estimate that gates with no track start new tracks. A track is confirmed once
+`confirm_length` steps have supported it with a detection; out of view is not gone: a confirmed
+track whose labelled component still survives in the mixture is held by it, and a confirmed track
+ends only when nothing has supported it for `timeout_s`. A tentative track ends at its first
+unsupported step. Each track keeps its history (time, mean, covariance) in an append-only log.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.sat.linalg import inv_det_2x2
+from companion.sat.mixture import NO_LABEL, Mixture
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+BoolArray = NDArray[np.bool_]
+
+
+@dataclass(frozen=True, slots=True)
+class TrackParams:
+    """Association gate, confirmation length, end-of-track timeout and GP window length."""
+
+    gate_sq: float = 10.0
+    confirm_length: int = 3
+    timeout_s: float = 30.0
+    window: int = 30
+
+
+class _LogBuffer:
+    """Growable storage shared by TrackLog views; only ever written past every view's end."""
+
+    __slots__ = ("covs", "ids", "means", "t_s", "used")
+
+    def __init__(self, dim: int, capacity: int) -> None:
+        self.ids = np.zeros(capacity, dtype=np.int64)
+        self.t_s = np.zeros(capacity)
+        self.means = np.zeros((capacity, dim))
+        self.covs = np.zeros((capacity, dim, dim))
+        self.used = 0
+
+
+@dataclass(frozen=True, slots=True)
+class TrackLog:
+    """Append-only history rows (track id, t_s, mean, cov); appending returns a new view.
+
+    Views share one buffer and copy it only when an older view is appended to again, so that
+    every TrackLog value is immutable from the outside while appending costs O(rows added).
+    """
+
+    buffer: _LogBuffer
+    length: int
+
+    @staticmethod
+    def empty(dim: int) -> TrackLog:
+        """A log with no rows."""
+        return TrackLog(_LogBuffer(dim, 1024), 0)
+
+    def append(self, ids: IntArray, t_s: float, means: FloatArray, covs: FloatArray) -> TrackLog:
+        """A view with the rows of this one followed by the given rows."""
+        k = ids.shape[0]
+        if k == 0:
+            return self
+        buf = self.buffer
+        end = self.length + k
+        if buf.used != self.length or end > buf.ids.shape[0]:
+            grown = _LogBuffer(buf.means.shape[1], max(2 * buf.ids.shape[0], end))
+            for name in ("ids", "t_s", "means", "covs"):
+                getattr(grown, name)[: self.length] = getattr(buf, name)[: self.length]
+            buf = grown
+        buf.ids[self.length : end] = ids
+        buf.t_s[self.length : end] = t_s
+        buf.means[self.length : end] = means
+        buf.covs[self.length : end] = covs
+        buf.used = end
+        return TrackLog(buf, end)
+
+    def history(self, track_id: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """(t_s (k,), means (k, d), covs (k, d, d)) of one track, oldest first."""
+        rows = np.flatnonzero(self.buffer.ids[: self.length] == track_id)
+        buf = self.buffer
+        return buf.t_s[rows].copy(), buf.means[rows].copy(), buf.covs[rows].copy()
+
+
+@dataclass(frozen=True, slots=True)
+class Tracks:
+    """The live tracks, one row each, with their recent positions for GP prediction."""
+
+    ids: IntArray  # (T,)
+    hits: IntArray  # (T,) steps supported by a detection (confirmation counts these)
+    life: IntArray  # (T,) steps supported at all: the track's length l
+    confirmed: BoolArray  # (T,)
+    born_t_s: FloatArray  # (T,)
+    last_t_s: FloatArray  # (T,) time of the last support
+    means: FloatArray  # (T, d) state at the last support
+    covs: FloatArray  # (T, d, d)
+    win_t_s: FloatArray  # (T, W) recent support times, right-aligned
+    win_xy: FloatArray  # (T, W, 2) recent positions, right-aligned
+    win_count: IntArray  # (T,) valid entries at the right of the window
+    log: TrackLog = field(repr=False)
+    next_id: int = 0
+
+    @property
+    def size(self) -> int:
+        """Number of live tracks."""
+        return int(self.ids.shape[0])
+
+    @staticmethod
+    def empty(dim: int, window: int) -> Tracks:
+        """No tracks yet."""
+        return Tracks(
+            ids=np.zeros(0, dtype=np.int64),
+            hits=np.zeros(0, dtype=np.int64),
+            life=np.zeros(0, dtype=np.int64),
+            confirmed=np.zeros(0, dtype=bool),
+            born_t_s=np.zeros(0),
+            last_t_s=np.zeros(0),
+            means=np.zeros((0, dim)),
+            covs=np.zeros((0, dim, dim)),
+            win_t_s=np.zeros((0, window)),
+            win_xy=np.zeros((0, window, 2)),
+            win_count=np.zeros(0, dtype=np.int64),
+            log=TrackLog.empty(dim),
+        )
+
+    def take(self, keep: BoolArray | IntArray) -> Tracks:
+        """The tracks selected by a mask or an index, sharing the log."""
+        return Tracks(
+            self.ids[keep],
+            self.hits[keep],
+            self.life[keep],
+            self.confirmed[keep],
+            self.born_t_s[keep],
+            self.last_t_s[keep],
+            self.means[keep],
+            self.covs[keep],
+            self.win_t_s[keep],
+            self.win_xy[keep],
+            self.win_count[keep],
+            self.log,
+            self.next_id,
+        )
+
+
+def gate_distances(tracks: Tracks, means: FloatArray, covs: FloatArray) -> FloatArray:
+    """(T, e) squared Mahalanobis distances between track positions and estimate positions.
+
+    The covariance is the sum of the track's and the estimate's position covariances: both
+    positions are uncertain, and a well-localised track must still accept its own next estimate.
+    """
+    diff = means[None, :, :2] - tracks.means[:, None, :2]
+    inv, _ = inv_det_2x2(tracks.covs[:, None, :2, :2] + covs[None, :, :2, :2])
+    result: FloatArray = np.einsum("tei,teij,tej->te", diff, inv, diff)
+    return result
+
+
+def _associate(
+    tracks: Tracks, est_labels: IntArray, dist_sq: FloatArray, gate_sq: float
+) -> IntArray:
+    """For each estimate, the row of the track it continues, or -1 for a new track."""
+    n_est = est_labels.shape[0]
+    assigned = np.full(n_est, -1, dtype=np.int64)
+    if tracks.size == 0 or n_est == 0:
+        return assigned
+    gated = dist_sq <= gate_sq
+    # 1. An estimate continues the track its component is labelled with, if it gates with it.
+    row_of_id = {int(i): k for k, i in enumerate(tracks.ids)}
+    claimed = np.zeros(tracks.size, dtype=bool)
+    by_distance: list[tuple[float, int, int]] = []
+    for e, label in enumerate(est_labels):
+        row = row_of_id.get(int(label), -1) if label != NO_LABEL else -1
+        if row >= 0 and gated[row, e]:
+            by_distance.append((float(dist_sq[row, e]), row, e))
+    for _, row, e in sorted(by_distance):
+        if not claimed[row]:
+            claimed[row] = True
+            assigned[e] = row
+    # 2. The rest gate with the unclaimed tracks, nearest pairs first.
+    free = np.flatnonzero(assigned < 0)
+    if free.size and not claimed.all():
+        rows, cols = np.nonzero(gated[:, free] & ~claimed[:, None])
+        pairs = sorted(zip(dist_sq[rows, free[cols]].tolist(), rows.tolist(), free[cols].tolist()))
+        for _, row, e in pairs:
+            if not claimed[row] and assigned[e] < 0:
+                claimed[row] = True
+                assigned[e] = row
+    return assigned
+
+
+def maintain(
+    tracks: Tracks,
+    mix: Mixture,
+    est_index: IntArray,
+    detected: BoolArray,
+    t_s: float,
+    params: TrackParams,
+) -> tuple[Tracks, Mixture]:
+    """Associate this step's estimates with the tracks; returns the tracks and relabelled mixture.
+
+    `est_index` holds the mixture rows of the estimates (a row appears round(w) times);
+    `detected[i]` says whether component i owes its weight to a detection this step.
+    """
+    est_means = mix.means[est_index]
+    est_covs = mix.covs[est_index]
+    dist_sq = gate_distances(tracks, est_means, est_covs)
+    assigned = _associate(tracks, mix.labels[est_index], dist_sq, params.gate_sq)
+
+    supported_by = np.full(tracks.size, -1, dtype=np.int64)  # mixture row supporting each track
+    has_estimate = assigned >= 0
+    supported_by[assigned[has_estimate]] = est_index[has_estimate]
+    hit = np.zeros(tracks.size, dtype=bool)
+    hit[assigned[has_estimate]] = detected[est_index[has_estimate]]
+    # Hold: a confirmed track with no estimate is kept by its labelled component, if it survives.
+    idle = np.flatnonzero((supported_by < 0) & tracks.confirmed)
+    if idle.size and mix.size:
+        label_rows = np.flatnonzero(mix.labels != NO_LABEL)
+        heaviest = label_rows[np.argsort(-mix.weights[label_rows], kind="stable")]
+        ids, first = np.unique(mix.labels[heaviest], return_index=True)
+        lookup = dict(zip(ids.tolist(), heaviest[first].tolist()))
+        for row in idle:
+            supported_by[row] = lookup.get(int(tracks.ids[row]), -1)
+
+    supported = supported_by >= 0
+    alive = supported | (tracks.confirmed & (t_s - tracks.last_t_s <= params.timeout_s))
+    updated = _support(tracks, supported, supported_by, hit, mix, t_s, params)
+
+    new_est = np.flatnonzero(~has_estimate)
+    born = _new_tracks(tracks, est_index[new_est], detected, mix, t_s, params)
+    survivors = updated.take(alive)
+    result = _concat(survivors, born) if born.size else survivors
+
+    labels = np.full(mix.size, NO_LABEL, dtype=np.int64)
+    rows = np.concatenate([supported_by[alive][supported[alive]], est_index[new_est]])
+    owners = np.concatenate([survivors.ids[supported[alive]], born.ids])
+    labels[rows[::-1]] = owners[::-1]  # a component shared by two tracks keeps the first
+    relabelled = Mixture(mix.weights, mix.means, mix.covs, labels)
+    return result, relabelled
+
+
+def _support(
+    tracks: Tracks,
+    supported: BoolArray,
+    supported_by: IntArray,
+    hit: BoolArray,
+    mix: Mixture,
+    t_s: float,
+    params: TrackParams,
+) -> Tracks:
+    """The tracks with this step's support applied to the supported rows."""
+    if not supported.any():
+        return tracks
+    rows = np.flatnonzero(supported)
+    comp = supported_by[rows]
+    means = tracks.means.copy()
+    covs = tracks.covs.copy()
+    means[rows] = mix.means[comp]
+    covs[rows] = mix.covs[comp]
+    hits = tracks.hits + hit
+    win_t = tracks.win_t_s.copy()
+    win_xy = tracks.win_xy.copy()
+    win_t[rows, :-1] = win_t[rows, 1:]
+    win_xy[rows, :-1] = win_xy[rows, 1:]
+    win_t[rows, -1] = t_s
+    win_xy[rows, -1] = mix.means[comp, :2]
+    last_t = tracks.last_t_s.copy()
+    last_t[rows] = t_s
+    return Tracks(
+        ids=tracks.ids,
+        hits=hits,
+        life=tracks.life + supported,
+        confirmed=tracks.confirmed | (hits >= params.confirm_length),
+        born_t_s=tracks.born_t_s,
+        last_t_s=last_t,
+        means=means,
+        covs=covs,
+        win_t_s=win_t,
+        win_xy=win_xy,
+        win_count=np.minimum(tracks.win_count + supported, params.window),
+        log=tracks.log.append(tracks.ids[rows], t_s, mix.means[comp], mix.covs[comp]),
+        next_id=tracks.next_id,
+    )
+
+
+def _new_tracks(
+    tracks: Tracks,
+    comp: IntArray,
+    detected: BoolArray,
+    mix: Mixture,
+    t_s: float,
+    params: TrackParams,
+) -> Tracks:
+    """One new tentative track per unassigned estimate, with fresh ids."""
+    k = comp.shape[0]
+    ids = tracks.next_id + np.arange(k, dtype=np.int64)
+    hits = detected[comp].astype(np.int64)
+    win_t = np.zeros((k, params.window))
+    win_xy = np.zeros((k, params.window, 2))
+    win_t[:, -1] = t_s
+    win_xy[:, -1] = mix.means[comp, :2]
+    return Tracks(
+        ids=ids,
+        hits=hits,
+        life=np.ones(k, dtype=np.int64),
+        confirmed=hits >= params.confirm_length,
+        born_t_s=np.full(k, t_s),
+        last_t_s=np.full(k, t_s),
+        means=mix.means[comp],
+        covs=mix.covs[comp],
+        win_t_s=win_t,
+        win_xy=win_xy,
+        win_count=np.ones(k, dtype=np.int64),
+        log=tracks.log,
+        next_id=tracks.next_id + k,
+    )
+
+
+def _concat(old: Tracks, new: Tracks) -> Tracks:
+    """Old tracks followed by new ones; the new ones' first rows go to the log."""
+    log = old.log.append(new.ids, float(new.born_t_s[0]), new.means, new.covs)
+    return Tracks(
+        ids=np.concatenate([old.ids, new.ids]),
+        hits=np.concatenate([old.hits, new.hits]),
+        life=np.concatenate([old.life, new.life]),
+        confirmed=np.concatenate([old.confirmed, new.confirmed]),
+        born_t_s=np.concatenate([old.born_t_s, new.born_t_s]),
+        last_t_s=np.concatenate([old.last_t_s, new.last_t_s]),
+        means=np.concatenate([old.means, new.means]),
+        covs=np.concatenate([old.covs, new.covs]),
+        win_t_s=np.concatenate([old.win_t_s, new.win_t_s]),
+        win_xy=np.concatenate([old.win_xy, new.win_xy]),
+        win_count=np.concatenate([old.win_count, new.win_count]),
+        log=log,
+        next_id=new.next_id,
+    )

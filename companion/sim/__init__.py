@@ -1,0 +1,1 @@
+"""Filter-only simulation: scenario files, simulated world and sensor, the run loop."""

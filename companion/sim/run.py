@@ -1,0 +1,289 @@
+"""The filter-only simulation: one scenario, one seed -> time series and the contract's summary.
+
+The run is a pure function of (scenario, seed) except for the measured step times. Measurements
+come straight from the sensor model (no camera, no projection), as in the paper's study.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.metrics import mahalanobis_to_tracks, ospa, summarize_mahalanobis
+from companion.plan.planners import (
+    LargestGaussian,
+    LawnMower,
+    NearestGaussian,
+    Planner,
+    lawnmower_path,
+    move_towards,
+)
+from companion.plan.world import World
+from companion.sat.birth import BirthWeight
+from companion.sat.filter import SatParams, SatState, Scan, initial_state, step
+from companion.sat.fov import ConvexPolygon, Disk, Region
+from companion.sat.gp import GpParams, GpPredictor
+from companion.sat.predict import LinearModel
+from companion.sat.tracks import TrackParams
+from companion.sat.update import PushMode, PushRule
+from companion.sim.belief import initial_belief
+from companion.sim.scenario import Scenario
+from companion.sim.sensor import SensorModel, sense
+from companion.sim.truth import Truth, advance_truth, initial_truth
+
+FloatArray = NDArray[np.float64]
+Progress = Callable[[int, int], None]
+
+
+def filter_params(s: Scenario) -> SatParams:
+    """The filter's parameters from a scenario's [filter] and [sensor] tables."""
+    f = s.filter
+    return SatParams(
+        p_survive=f.p_survive,
+        p_detect=s.sensor.p_detect,
+        clutter_per_scan=s.sensor.clutter_prob + s.sensor.clutter_rate,
+        push=PushRule(*f.push_band, PushMode(f.push_mode)) if f.push_rule else None,
+        extract_weight=f.extract_weight,
+        prune_weight=f.prune_weight,
+        merge_distance_sq=f.merge_distance,
+        max_components=f.max_components,
+        use_gp=f.motion == "gp",
+        linear_model=LinearModel(f.linear_model),
+        q_m2_per_s=f.process_noise / s.dt_s,
+        birth=BirthWeight(f.birth),
+        birth_weight=f.birth_weight,
+        velocity_var_m2_s2=f.velocity_variance,
+        gp=GpParams(f.gp_sigma_f, f.gp_lengthscale, f.gp_sigma_n, f.gp_window),
+        tracks=TrackParams(f.merge_distance, f.confirm_length, f.track_timeout, f.gp_window),
+    )
+
+
+def make_planner(s: Scenario, world: World) -> Planner:
+    """The scenario's planner."""
+    r = s.robot
+    if r.planner == "lawnmower":
+        return LawnMower(lawnmower_path(world, np.array(r.start_xy), r.lane_spacing_m, r.sweeps))
+    if r.planner == "nearest-gaussian":
+        return NearestGaussian()
+    return LargestGaussian()
+
+
+def planned_steps(s: Scenario, world: World) -> int:
+    """Steps to run: the scenario's, or the lawn mower's duration when it says 0.
+
+    A non-lawn-mower planner with steps = 0 gets the lawn mower's duration over the same world,
+    so that planners are compared over equal time, as in the paper.
+    """
+    if s.steps > 0:
+        return s.steps
+    path = lawnmower_path(world, np.array(s.robot.start_xy), s.robot.lane_spacing_m, s.robot.sweeps)
+    legs = np.diff(np.vstack([s.robot.start_xy, path]), axis=0)
+    return math.ceil(float(np.hypot(*legs.T).sum()) / (s.robot.speed_m_s * s.dt_s) - 1e-9)
+
+
+def sensing_region(s: Scenario, robot_xy: FloatArray) -> Region:
+    """The FOV on the ground for a robot at robot_xy."""
+    if s.sensor.fov == "polygon":
+        return ConvexPolygon(s.sensor.fov_polygon_xy + robot_xy)
+    return Disk(robot_xy.copy(), s.sensor.fov_radius_m)
+
+
+def _fly(
+    planner: Planner,
+    robot_xy: FloatArray,
+    state: SatState,
+    world: World,
+    progress: int,
+    budget_m: float,
+) -> tuple[FloatArray, int]:
+    """Move the robot by up to budget_m along its plan (through several waypoints if need be)."""
+    while budget_m > 1e-12:
+        waypoint, progress = planner.next_waypoint(
+            robot_xy, state.mixture, state.tracks, world, progress
+        )
+        if waypoint is None:
+            break
+        nxt = move_towards(robot_xy, waypoint, budget_m)
+        moved = float(np.hypot(*(nxt - robot_xy)))
+        robot_xy = nxt
+        budget_m -= moved
+        if moved == 0.0 or not isinstance(planner, LawnMower):
+            break
+    return robot_xy, progress
+
+
+@dataclass(frozen=True, slots=True)
+class SimResult:
+    """Time series of one run (index k = step k, k = 1..K) and its final state."""
+
+    scenario: Scenario
+    seed: int
+    wall_s: float
+    t_s: FloatArray
+    robot_xy: FloatArray  # (K + 1, 2), the start included
+    true_count: NDArray[np.int64]
+    tracks_confirmed: NDArray[np.int64]
+    weight_sum: FloatArray
+    components: NDArray[np.int64]
+    ospa: FloatArray
+    mahal_closest_mean: FloatArray
+    mahal_second_mean: FloatArray
+    max_track_var_m2: FloatArray  # largest position variance among confirmed tracks (nan: none)
+    step_ms: FloatArray
+    measurements: FloatArray  # (M, 3): step, x, y
+    is_clutter: NDArray[np.bool_]  # (M,)
+    final_truth_xy: FloatArray
+    final_state: SatState
+
+    def summary(self) -> dict[str, Any]:
+        """The JSON object of the `simulate --json` contract."""
+        state = self.final_state
+        confirmed = state.tracks.confirmed
+        closest, second = mahalanobis_to_tracks(
+            self.final_truth_xy,
+            state.tracks.means[confirmed, :2],
+            state.tracks.covs[confirmed, :2, :2],
+        )
+        k = self.t_s.size
+        tail = self.ospa[k - max(1, k // 5) :]
+        out: dict[str, Any] = {
+            "scenario": self.scenario.name,
+            "seed": self.seed,
+            "steps": k,
+            "wall_s": self.wall_s,
+            "step_ms_median": float(np.median(self.step_ms)),
+            "step_ms_p95": float(np.percentile(self.step_ms, 95)),
+            "filter_s": float(self.step_ms.sum() / 1e3),
+            "true_count": int(self.true_count[-1]),
+            "tracks_confirmed": int(self.tracks_confirmed[-1]),
+            "weight_sum": float(self.weight_sum[-1]),
+            "components": int(self.components[-1]),
+            **summarize_mahalanobis(closest, second),
+            "ospa_mean": float(self.ospa.mean()),
+            "ospa_tail_mean": float(tail.mean()),
+            "ospa_final": float(self.ospa[-1]),
+        }
+        return {key: _json_number(value) for key, value in out.items()}
+
+
+def _json_number(value: Any) -> Any:
+    """inf and nan become None (JSON null); everything else passes."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def simulate(s: Scenario, progress: Progress | None = None) -> SimResult:
+    """Run one scenario with its seed."""
+    wall_start = time.perf_counter()
+    world = World(*s.world.size_m)
+    params = filter_params(s)
+    sensor = SensorModel(
+        s.sensor.p_detect, s.sensor.noise_std_m, s.sensor.clutter_prob, s.sensor.clutter_rate
+    )
+    truth_rng, sensor_rng, belief_rng = (
+        np.random.default_rng(child) for child in np.random.SeedSequence(s.seed).spawn(3)
+    )
+    tg = s.targets
+    truth: Truth = initial_truth(tg.positions_xy, tg.count, tg.appear, world, truth_rng)
+    n_initial = int(truth.alive.sum())
+    dim = params.linear_model.state_dim
+    belief = initial_belief(
+        s.belief.kind,
+        s.belief.count,
+        s.belief.offset_m,
+        s.belief.variance_m2,
+        [(c.weight, np.array(c.mean_xy), c.cov) for c in s.belief.components],
+        truth.alive_xy,
+        world,
+        belief_rng,
+        dim,
+        params.velocity_var_m2_s2,
+    )
+    state = initial_state(belief, 0.0, params)
+    gp = GpPredictor(params.gp)
+    planner = make_planner(s, world)
+    r_cov = s.sensor.noise_std_m**2 * np.eye(2)
+
+    n_steps = planned_steps(s, world)
+    robot = np.array(s.robot.start_xy, dtype=np.float64)
+    progress_idx = 0
+    series: dict[str, list[float]] = {
+        key: []
+        for key in (
+            "t", "true", "conf", "wsum", "comp", "ospa", "mc", "ms", "maxvar", "ms_step", "x", "y"
+        )
+    }
+    series["x"].append(float(robot[0]))
+    series["y"].append(float(robot[1]))
+    meas_rows: list[FloatArray] = []
+    clutter_flags: list[NDArray[np.bool_]] = []
+    for k in range(1, n_steps + 1):
+        t_s = k * s.dt_s
+        truth = advance_truth(
+            truth, k, s.dt_s, tg.speed_m_s, tg.turn_every_steps, tg.appear, tg.disappear,
+            n_initial, world, truth_rng,
+        )
+        robot, progress_idx = _fly(
+            planner, robot, state, world, progress_idx, s.robot.speed_m_s * s.dt_s
+        )
+        region = sensing_region(s, robot)
+        z, is_clutter = sense(sensor, truth.alive_xy, region, sensor_rng)
+        scan = Scan(t_s, region, z, r_cov, robot)
+        started = time.perf_counter_ns()
+        state, _ = step(state, scan, params, gp)
+        series["ms_step"].append((time.perf_counter_ns() - started) / 1e6)
+
+        tracks = state.tracks
+        conf = tracks.confirmed
+        truth_xy = truth.alive_xy
+        closest, second = mahalanobis_to_tracks(
+            truth_xy, tracks.means[conf, :2], tracks.covs[conf, :2, :2]
+        )
+        mahal = summarize_mahalanobis(closest, second)
+        var = tracks.covs[conf][:, [0, 1], [0, 1]]
+        series["t"].append(t_s)
+        series["true"].append(truth_xy.shape[0])
+        series["conf"].append(int(conf.sum()))
+        series["wsum"].append(state.mixture.total_weight)
+        series["comp"].append(state.mixture.size)
+        series["ospa"].append(
+            ospa(tracks.means[conf, :2], truth_xy, s.metrics.ospa_p, s.metrics.ospa_c)
+        )
+        series["mc"].append(mahal["mahal_closest_mean"])
+        series["ms"].append(mahal["mahal_second_mean"])
+        series["maxvar"].append(float(var.max()) if var.size else math.nan)
+        series["x"].append(float(robot[0]))
+        series["y"].append(float(robot[1]))
+        if z.shape[0]:
+            meas_rows.append(np.column_stack([np.full(z.shape[0], k), z]))
+            clutter_flags.append(is_clutter)
+        if progress is not None:
+            progress(k, n_steps)
+
+    return SimResult(
+        scenario=s,
+        seed=s.seed,
+        wall_s=time.perf_counter() - wall_start,
+        t_s=np.array(series["t"]),
+        robot_xy=np.column_stack([series["x"], series["y"]]),
+        true_count=np.array(series["true"], dtype=np.int64),
+        tracks_confirmed=np.array(series["conf"], dtype=np.int64),
+        weight_sum=np.array(series["wsum"]),
+        components=np.array(series["comp"], dtype=np.int64),
+        ospa=np.array(series["ospa"]),
+        mahal_closest_mean=np.array(series["mc"]),
+        mahal_second_mean=np.array(series["ms"]),
+        max_track_var_m2=np.array(series["maxvar"]),
+        step_ms=np.array(series["ms_step"]),
+        measurements=np.concatenate(meas_rows) if meas_rows else np.zeros((0, 3)),
+        is_clutter=np.concatenate(clutter_flags) if clutter_flags else np.zeros(0, dtype=bool),
+        final_truth_xy=truth.alive_xy,
+        final_state=state,
+    )

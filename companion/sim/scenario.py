@@ -1,0 +1,939 @@
+"""Scenario files (TOML) read into frozen, validated specs; the contract is scenario-format.md.
+
+Every key is declared once below (`_TOP`, `_SECTIONS`, `_COMPONENT_KEYS`: dotted name, dataclass
+field, value kind with its range, default, one-line doc), and parsing, `scenario_to_dict` and the
+key reference `docs/scenario.md` (`python -m companion.sim.scenario --markdown`) are all driven by
+those declarations. Adding a key is one declaration plus the dataclass field it fills. Rules that
+tie several keys together live in the section builders (`_targets`, `_sensor`, ...) and are listed
+in `_CROSS_KEY_RULES` for the reference.
+
+Defaults reproduce the paper's set-up: ten stationary targets in a 150 m x 150 m world, a 25 m disk
+FOV, 10 % clutter, three lawn-mower sweeps at 0.5 m/s, an exact initial belief. Coordinates are
+metres in a local frame whose origin is the world's lower-left corner, x east, y north.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import difflib
+import math
+import numbers
+import sys
+import tomllib
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Generic, Literal, TypeVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.errors import ConfigError
+from companion.sat.gp import GpParams
+
+__all__ = [
+    "BeliefComponent",
+    "BeliefSpec",
+    "FilterSpec",
+    "MetricsSpec",
+    "RobotSpec",
+    "Scenario",
+    "SensorSpec",
+    "TargetsSpec",
+    "WorldSpec",
+    "load_scenario",
+    "parse_scenario",
+    "scenario_to_dict",
+    "schema_markdown",
+]
+
+FloatArray = NDArray[np.float64]
+T = TypeVar("T")
+
+
+# ---------------------------------------------------------------------------------------------
+# The result: frozen, slotted specs with units in their field names
+# ---------------------------------------------------------------------------------------------
+
+
+class _ArrayEq:
+    """Mixin: field-wise equality in which array fields compare by shape and value."""
+
+    __slots__ = ()
+
+    def __eq__(self, other: object) -> bool:
+        if type(other) is not type(self):
+            return NotImplemented
+        for f in dataclasses.fields(self):  # type: ignore[arg-type]
+            a, b = getattr(self, f.name), getattr(other, f.name)
+            if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+                if not (isinstance(a, np.ndarray) and isinstance(b, np.ndarray)):
+                    return False
+                if a.shape != b.shape or not np.array_equal(a, b):
+                    return False
+            elif a != b:
+                return False
+        return True
+
+    __hash__ = None  # type: ignore[assignment]  # arrays are unhashable, so are these specs
+
+
+@dataclass(frozen=True, slots=True)
+class WorldSpec:
+    """The rectangular world [0, size_x] x [0, size_y], metres."""
+
+    size_m: tuple[float, float]
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class TargetsSpec(_ArrayEq):
+    """True targets: initial count or positions, motion, and later appearances/disappearances."""
+
+    count: int
+    positions_xy: FloatArray  # (n, 2) metres; shape (0, 2) when placed at random from the seed
+    speed_m_s: float
+    turn_every_steps: int
+    appear: tuple[tuple[int, float, float], ...]  # (step, x_m, y_m)
+    disappear: tuple[tuple[int, int], ...]  # (step, index into initial + appeared targets)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SensorSpec(_ArrayEq):
+    """Field of view, detection probability, noise and clutter of the simulated sensor."""
+
+    fov: Literal["disk", "polygon", "camera"]
+    fov_radius_m: float
+    fov_polygon_xy: FloatArray  # (k, 2) offsets from the robot, metres, counter-clockwise
+    p_detect: float
+    noise_std_m: float
+    clutter_prob: float
+    clutter_rate: float
+
+
+@dataclass(frozen=True, slots=True)
+class RobotSpec:
+    """Start, speed and planner of the robot carrying the sensor."""
+
+    start_xy: tuple[float, float]
+    speed_m_s: float
+    planner: Literal["lawnmower", "nearest-gaussian", "largest-gaussian"]
+    lane_spacing_m: float
+    sweeps: int
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class BeliefComponent(_ArrayEq):
+    """One Gaussian of an explicit initial PHD: weight, mean (m) and covariance (m^2)."""
+
+    weight: float
+    mean_xy: tuple[float, float]
+    cov: FloatArray  # (2, 2), symmetric positive definite
+
+
+@dataclass(frozen=True, slots=True)
+class BeliefSpec:
+    """How the initial GM-PHD is built (around the true targets, empty, or given explicitly)."""
+
+    kind: Literal["exact", "under", "over", "empty", "explicit"]
+    count: int
+    offset_m: float
+    variance_m2: float
+    components: tuple[BeliefComponent, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class FilterSpec:
+    """Parameters of the GM-PHD search-and-track filter."""
+
+    p_survive: float
+    push_rule: bool
+    push_band: tuple[float, float]
+    push_mode: Literal["moment", "paper"]
+    extract_weight: float
+    confirm_length: int
+    prune_weight: float
+    merge_distance: float  # squared Mahalanobis distance (Vo & Ma's U); also the track gate
+    max_components: int
+    motion: Literal["gp", "linear"]
+    process_noise: float  # m^2 per step per axis
+    birth_weight: float
+    birth: Literal["adaptive", "constant"]
+    linear_model: Literal["cp", "cv"]
+    velocity_variance: float  # m^2/s^2
+    gp_sigma_f: float  # m
+    gp_lengthscale: float  # s
+    gp_sigma_n: float  # m
+    gp_window: int  # points
+    track_timeout: float  # s
+
+
+@dataclass(frozen=True, slots=True)
+class MetricsSpec:
+    """OSPA cut-off (m) and order."""
+
+    ospa_c: float
+    ospa_p: float
+
+
+@dataclass(frozen=True, slots=True)
+class Scenario:
+    """A whole scenario; a run is a pure function of it (the seed included)."""
+
+    name: str
+    seed: int
+    dt_s: float
+    steps: int  # 0: until the planner's path ends
+    world: WorldSpec
+    targets: TargetsSpec
+    sensor: SensorSpec
+    robot: RobotSpec
+    belief: BeliefSpec
+    filter: FilterSpec
+    metrics: MetricsSpec
+
+
+# ---------------------------------------------------------------------------------------------
+# Value kinds: how a raw TOML value is type-checked, range-checked, described and written back
+# ---------------------------------------------------------------------------------------------
+
+_TOML_TYPE_NAMES = ((bool, "boolean"), (int, "integer"), (float, "float"), (str, "string"))
+
+
+def _describe(raw: object) -> str:
+    """'<TOML type> <short value>' for an error message."""
+    if raw is None:
+        return "nothing (None)"
+    name = type(raw).__name__
+    for py_type, toml_name in _TOML_TYPE_NAMES:
+        if isinstance(raw, py_type):
+            name = toml_name
+            break
+    else:
+        if isinstance(raw, list | tuple):
+            name = "array"
+        elif isinstance(raw, Mapping):
+            name = "table"
+    text = _toml(raw) if isinstance(raw, bool | str) else repr(raw)
+    if len(text) > 40:
+        text = text[:37] + "..."
+    return f"{name} {text}"
+
+
+def _toml(value: object) -> str:
+    """A value in TOML syntax (for defaults in the reference and values in messages)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(_toml(v) for v in value) + "]"
+    return repr(value)
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}" + ("" if n == 1 else "s")
+
+
+def _array_items(key: str, raw: object, shape_doc: str) -> Sequence[object]:
+    """raw as a sequence (a TOML array), else ConfigError naming key."""
+    if not isinstance(raw, list | tuple):
+        raise ConfigError(key, f"must be an array {shape_doc}, got {_describe(raw)}")
+    return raw
+
+
+class _Kind(Generic[T]):
+    """How one key's value is parsed and checked (`parse`), described (`doc`), written (`dump`)."""
+
+    doc: str = ""
+
+    def parse(self, key: str, raw: object) -> T:
+        """The checked value, or ConfigError(key, ...)."""
+        raise NotImplementedError
+
+    def dump(self, value: T) -> object:
+        """The value as plain TOML data (what `parse` accepts back)."""
+        return value
+
+
+class _Int(_Kind[int]):
+    def __init__(self, ge: int | None = None) -> None:
+        self.ge = ge
+        self.doc = "integer" if ge is None else f"integer >= {ge}"
+
+    def parse(self, key: str, raw: object) -> int:
+        # bool is an int subclass in Python but not an integer in TOML; a float is never an int.
+        if isinstance(raw, bool) or not isinstance(raw, numbers.Integral):
+            raise ConfigError(key, f"must be an integer, got {_describe(raw)}")
+        value = int(raw)
+        if self.ge is not None and value < self.ge:
+            raise ConfigError(key, f"must be >= {self.ge}, got {value}")
+        return value
+
+
+class _Float(_Kind[float]):
+    def __init__(
+        self, gt: float | None = None, ge: float | None = None, le: float | None = None
+    ) -> None:
+        self.gt, self.ge, self.le = gt, ge, le
+        if ge is not None and le is not None:
+            self.range = f"in [{ge}, {le}]"
+        elif gt is not None:
+            self.range = f"> {gt}"
+        elif ge is not None:
+            self.range = f">= {ge}"
+        elif le is not None:
+            self.range = f"<= {le}"
+        else:
+            self.range = ""
+        self.doc = f"number {self.range}".rstrip()
+
+    def parse(self, key: str, raw: object) -> float:
+        if isinstance(raw, bool) or not isinstance(raw, numbers.Real):
+            raise ConfigError(key, f"must be a number, got {_describe(raw)}")
+        try:
+            value = float(raw)
+        except OverflowError:  # an integer beyond the float range
+            value = math.inf
+        if not math.isfinite(value):
+            raise ConfigError(key, f"must be finite, got {_describe(raw)}")
+        if (
+            (self.gt is not None and not value > self.gt)
+            or (self.ge is not None and not value >= self.ge)
+            or (self.le is not None and not value <= self.le)
+        ):
+            raise ConfigError(key, f"must be {self.range}, got {value!r}")
+        return value
+
+
+class _Bool(_Kind[bool]):
+    doc = "boolean"
+
+    def parse(self, key: str, raw: object) -> bool:
+        if not isinstance(raw, bool):
+            raise ConfigError(key, f"must be true or false, got {_describe(raw)}")
+        return raw
+
+
+class _Text(_Kind[str]):
+    doc = "non-empty string"
+
+    def parse(self, key: str, raw: object) -> str:
+        if not isinstance(raw, str) or not raw:
+            raise ConfigError(key, f"must be a non-empty string, got {_describe(raw)}")
+        return raw
+
+
+class _Choice(_Kind[str]):
+    def __init__(self, *options: str) -> None:
+        self.options = options
+        self.doc = "one of " + ", ".join(_toml(o) for o in options)
+
+    def parse(self, key: str, raw: object) -> str:
+        if not isinstance(raw, str) or raw not in self.options:
+            raise ConfigError(key, f"must be {self.doc}, got {_describe(raw)}")
+        return raw
+
+
+class _Pair(_Kind[tuple[float, float]]):
+    def __init__(self, item: _Float, ordered: bool = False) -> None:
+        self.item, self.ordered = item, ordered
+        each = f", each {item.range}" if item.range else ""
+        self.doc = f"[number, number]{each}" + (", first <= second" if ordered else "")
+
+    def parse(self, key: str, raw: object) -> tuple[float, float]:
+        items = _array_items(key, raw, "of 2 numbers")
+        if len(items) != 2:
+            got = _count(len(items), "item")
+            raise ConfigError(key, f"must be an array of 2 numbers, got {got}")
+        a = self.item.parse(f"{key}[0]", items[0])
+        b = self.item.parse(f"{key}[1]", items[1])
+        if self.ordered and a > b:
+            raise ConfigError(key, f"must be [lo, hi] with lo <= hi, got {_toml([a, b])}")
+        return (a, b)
+
+    def dump(self, value: tuple[float, float]) -> object:
+        return list(value)
+
+
+def _frozen(rows: Sequence[Sequence[float]], ncols: int) -> FloatArray:
+    """A read-only float array of shape (len(rows), ncols)."""
+    out = np.array(rows, dtype=np.float64).reshape(len(rows), ncols)
+    out.flags.writeable = False
+    return out
+
+
+class _Points(_Kind[FloatArray]):
+    """An array of [x, y] points, returned as a read-only (n, 2) array."""
+
+    doc = "array of [x, y] (metres)"
+
+    def parse(self, key: str, raw: object) -> FloatArray:
+        pair = _Pair(_Float())
+        items = _array_items(key, raw, "of [x, y] points")
+        return _frozen([pair.parse(f"{key}[{i}]", p) for i, p in enumerate(items)], 2)
+
+    def dump(self, value: FloatArray) -> object:
+        return [[float(x), float(y)] for x, y in value]
+
+
+class _Rows(_Kind[tuple[tuple[Any, ...], ...]]):
+    """An array of fixed-length arrays whose positions have their own kinds ([step, x, y], ...)."""
+
+    def __init__(self, shape_doc: str, *columns: _Kind[Any]) -> None:
+        self.shape_doc, self.columns = shape_doc, columns
+        self.doc = f"array of {shape_doc} (" + "; ".join(c.doc for c in columns) + ")"
+
+    def parse(self, key: str, raw: object) -> tuple[tuple[Any, ...], ...]:
+        rows = []
+        for i, row in enumerate(_array_items(key, raw, f"of {self.shape_doc}")):
+            cells = _array_items(f"{key}[{i}]", row, self.shape_doc)
+            if len(cells) != len(self.columns):
+                raise ConfigError(
+                    f"{key}[{i}]",
+                    f"must be an array {self.shape_doc}, got {_count(len(cells), 'item')}",
+                )
+            pairs = zip(self.columns, cells, strict=True)
+            rows.append(tuple(c.parse(f"{key}[{i}][{j}]", v) for j, (c, v) in enumerate(pairs)))
+        return tuple(rows)
+
+    def dump(self, value: tuple[tuple[Any, ...], ...]) -> object:
+        return [list(row) for row in value]
+
+
+class _Matrix2(_Kind[FloatArray]):
+    """A symmetric positive definite 2x2 matrix [[a, b], [b, d]], returned read-only."""
+
+    doc = "[[number, number], [number, number]], symmetric positive definite"
+
+    def parse(self, key: str, raw: object) -> FloatArray:
+        rows = _array_items(key, raw, "[[a, b], [b, d]]")
+        if len(rows) != 2:
+            got = _count(len(rows), "row")
+            raise ConfigError(key, f"must be a 2x2 array [[a, b], [b, d]], got {got}")
+        row0 = _Pair(_Float()).parse(f"{key}[0]", rows[0])
+        row1 = _Pair(_Float()).parse(f"{key}[1]", rows[1])
+        (a, b), (c, d) = row0, row1
+        # Scaled so that the 2x2 determinant cannot overflow for any finite entries.
+        s = max(abs(a), abs(b), abs(d))
+        if b != c or a <= 0.0 or (a / s) * (d / s) - (b / s) ** 2 <= 0.0:
+            raise ConfigError(key, "must be symmetric positive definite")
+        return _frozen([row0, row1], 2)
+
+    def dump(self, value: FloatArray) -> object:
+        return [[float(v) for v in row] for row in value]
+
+
+class _Components(_Kind[tuple[Any, ...]]):
+    """belief.components: an array of tables; `_belief` reads each table (see _COMPONENT_KEYS)."""
+
+    doc = "array of tables {weight, mean, cov}"
+
+    def parse(self, key: str, raw: object) -> tuple[Any, ...]:
+        items = _array_items(key, raw, "of tables {weight, mean, cov}")
+        for i, item in enumerate(items):
+            if not isinstance(item, Mapping):
+                raise ConfigError(
+                    f"{key}[{i}]", f"must be a table {{weight, mean, cov}}, got {_describe(item)}"
+                )
+        return tuple(items)
+
+    def dump(self, value: tuple[Any, ...]) -> object:
+        return [_dump_table(c, _COMPONENT_KEYS) for c in value]
+
+
+# ---------------------------------------------------------------------------------------------
+# The declarations: one per key
+# ---------------------------------------------------------------------------------------------
+
+
+class _Derived:
+    """Marks a default computed from other keys; `doc` says how."""
+
+    def __init__(self, doc: str) -> None:
+        self.doc = doc
+
+
+_REQUIRED = _Derived("required")
+
+
+@dataclass(frozen=True, slots=True)
+class _Key:
+    """One scenario key: TOML name (leaf), dataclass field, kind, default, doc."""
+
+    leaf: str
+    field: str
+    kind: _Kind[Any]
+    default: object
+    doc: str
+    project: bool = False  # the project's addition to scenario-format.md
+
+
+_GP = GpParams()
+_DEFAULT_TARGET_COUNT = 10
+
+_TOP: tuple[_Key, ...] = (
+    _Key("name", "name", _Text(), _Derived("the file's name without `.toml`"), "scenario name"),
+    _Key("seed", "seed", _Int(ge=0), 0,
+         "the run is a pure function of (file, seed); --seed overrides"),
+    _Key("dt", "dt_s", _Float(gt=0), 1.0, "seconds per step"),
+    _Key("steps", "steps", _Int(ge=0), 0, "steps to run; 0 = until the planner's path ends"),
+)
+
+_SECTIONS: dict[str, tuple[_Key, ...]] = {
+    "world": (
+        _Key("size", "size_m", _Pair(_Float(gt=0)), [150.0, 150.0], "metres, x by y"),
+    ),
+    "targets": (
+        _Key("count", "count", _Int(ge=0),
+             _Derived(f"{_DEFAULT_TARGET_COUNT}, or the number of `positions`"),
+             "targets placed uniformly at random in the world (from the seed)"),
+        _Key("positions", "positions_xy", _Points(), [],
+             "explicit initial [[x, y], ...] instead of random"),
+        _Key("speed", "speed_m_s", _Float(ge=0), 0.0, "m/s; 0 = stationary"),
+        _Key("turn_every", "turn_every_steps", _Int(ge=1), 400,
+             "steps between random heading changes of moving targets"),
+        _Key("appear", "appear", _Rows("[step, x, y]", _Int(ge=0), _Float(), _Float()), [],
+             "targets that enter the world later"),
+        _Key("disappear", "disappear", _Rows("[step, index]", _Int(ge=0), _Int(ge=0)), [],
+             "targets that leave; index counts initial targets, then appearing ones in order"),
+    ),
+    "sensor": (
+        _Key("fov", "fov", _Choice("disk", "polygon", "camera"), "disk",
+             "disk (the paper's), polygon, or camera (SITL only)"),
+        _Key("fov_radius", "fov_radius_m", _Float(gt=0), 25.0, "metres, for fov = \"disk\""),
+        _Key("fov_polygon", "fov_polygon_xy", _Points(), [],
+             "for fov = \"polygon\": convex [[dx, dy], ...] offsets from the robot, metres",
+             project=True),
+        _Key("p_detect", "p_detect", _Float(ge=0, le=1), 0.98, "p(D | in FOV)"),
+        _Key("noise_std", "noise_std_m", _Float(gt=0), 1.0,
+             "measurement noise std per axis, metres (R = noise_std^2 I)"),
+        _Key("clutter_prob", "clutter_prob", _Float(ge=0, le=1), 0.1,
+             "probability of one false positive per step, uniform in the FOV"),
+        _Key("clutter_rate", "clutter_rate", _Float(ge=0), 0.0,
+             "Poisson mean of further false positives per step"),
+    ),
+    "robot": (
+        _Key("start", "start_xy", _Pair(_Float()), [0.0, 0.0], "metres, inside the world"),
+        _Key("speed", "speed_m_s", _Float(gt=0), 0.5, "m/s"),
+        _Key("planner", "planner", _Choice("lawnmower", "nearest-gaussian", "largest-gaussian"),
+             "lawnmower", "path planner"),
+        _Key("lane_spacing", "lane_spacing_m", _Float(gt=0), 25.0,
+             "metres between lawn-mower lanes"),
+        _Key("sweeps", "sweeps", _Int(ge=1), 3,
+             "lawn-mower passes over the whole world, each returning to start"),
+    ),
+    "belief": (
+        _Key("kind", "kind", _Choice("exact", "under", "over", "empty", "explicit"), "exact",
+             "how the initial GM-PHD is built"),
+        _Key("count", "count", _Int(ge=0), _Derived("`targets.count`"),
+             "components near true targets, for exact (= targets.count), under (<), over (>)"),
+        _Key("offset", "offset_m", _Float(ge=0), 15.0,
+             "mean distance of each component from a true target, metres"),
+        _Key("variance", "variance_m2", _Float(gt=0), 50.0,
+             "diagonal covariance entry of each component, m^2"),
+        _Key("components", "components", _Components(), [],
+             "for kind = \"explicit\": the initial components (keys below)"),
+    ),
+    "filter": (
+        _Key("p_survive", "p_survive", _Float(ge=0, le=1), 1.0, "survival probability p_S"),
+        _Key("push_rule", "push_rule", _Bool(), True, "the paper's limited-FOV update rule"),
+        _Key("push_band", "push_band", _Pair(_Float(ge=0, le=1), ordered=True), [0.4, 0.6],
+             "p_D band [lo, hi] in which the push rule acts"),
+        _Key("push_mode", "push_mode", _Choice("moment", "paper"), "moment",
+             "how the push rule moves a missed component: \"paper\" = Eq. push inside the band; "
+             "\"moment\" = the mean of its exact no-detection posterior (any p_D)",
+             project=True),
+        _Key("extract_weight", "extract_weight", _Float(gt=0), 0.5, "state extraction weight"),
+        _Key("confirm_length", "confirm_length", _Int(ge=1), 3,
+             "steps before a track is confirmed (l_threshold)"),
+        _Key("prune_weight", "prune_weight", _Float(ge=0), 0.001, "pruning weight"),
+        _Key("merge_distance", "merge_distance", _Float(ge=0), 10.0,
+             "threshold on the SQUARED Mahalanobis distance (Vo & Ma's U); also the track gate"),
+        _Key("max_components", "max_components", _Int(ge=1), 100, "components kept after merging"),
+        _Key("motion", "motion", _Choice("gp", "linear"), "gp", "motion model of confirmed tracks"),
+        _Key("process_noise", "process_noise", _Float(ge=0), 0.01,
+             "variance per step per axis of the linear model, m^2"),
+        _Key("birth_weight", "birth_weight", _Float(gt=0), 1.0,
+             "weight of a measurement-driven new component (the paper uses 1)"),
+        _Key("birth", "birth", _Choice("adaptive", "constant"), "adaptive",
+             "adaptive: the share of a measurement that clutter and the existing components do "
+             "not explain (Ristic et al. 2012); constant: birth_weight (the paper)",
+             project=True),
+        _Key("linear_model", "linear_model", _Choice("cp", "cv"), "cp",
+             "linear motion: constant position (random walk) or constant velocity", project=True),
+        _Key("velocity_variance", "velocity_variance", _Float(gt=0), 1.0,
+             "velocity prior of a new component for linear_model = \"cv\", m^2/s^2", project=True),
+        _Key("gp_sigma_f", "gp_sigma_f", _Float(gt=0), _GP.sigma_f_m,
+             "GP signal std, metres", project=True),
+        _Key("gp_lengthscale", "gp_lengthscale", _Float(gt=0), _GP.lengthscale_s,
+             "GP kernel length scale, seconds", project=True),
+        _Key("gp_sigma_n", "gp_sigma_n", _Float(gt=0), _GP.sigma_n_m,
+             "GP observation noise std, metres", project=True),
+        _Key("gp_window", "gp_window", _Int(ge=2), _GP.window,
+             "track positions (most recent) the GP regresses on", project=True),
+        _Key("track_timeout", "track_timeout", _Float(gt=0), 30.0,
+             "seconds without support before a confirmed track ends", project=True),
+    ),
+    "metrics": (
+        _Key("ospa_c", "ospa_c", _Float(gt=0), 100.0, "OSPA cut-off, metres"),
+        _Key("ospa_p", "ospa_p", _Float(ge=1), 2.0, "OSPA order"),
+    ),
+}
+
+_COMPONENT_KEYS: tuple[_Key, ...] = (
+    _Key("weight", "weight", _Float(gt=0), 1.0, "weight of the component"),
+    _Key("mean", "mean_xy", _Pair(_Float()), _REQUIRED, "mean [x, y], metres"),
+    _Key("cov", "cov", _Matrix2(), _Derived("`belief.variance` times the identity"),
+         "covariance, m^2"),
+)
+
+_RESERVED_TABLES = ("geo", "camera", "vehicle")
+
+_CROSS_KEY_RULES = (
+    "`targets.positions` given: `targets.count` must equal its length or be omitted.",
+    "`targets.positions`, `targets.appear` positions and `robot.start` must lie inside the world "
+    "(0 <= x <= size[0], 0 <= y <= size[1]).",
+    "`targets.disappear` index: 0 <= index < count + len(appear); a target disappears at most "
+    "once, and an appearing target not before its appearance step.",
+    '`sensor.fov = "polygon"` requires `sensor.fov_polygon` (>= 3 points, convex, positive '
+    "area; stored counter-clockwise); `fov_polygon` given with another `fov` is an error.",
+    '`sensor.fov = "camera"` needs the `[camera]` table of the SITL mission: an error in the '
+    "filter-only simulation.",
+    "`belief.count` must equal (exact), be below (under) or above (over) the number of initial "
+    "targets; it is not read for empty and explicit.",
+    '`belief.kind = "explicit"` requires `belief.components`; `components` given with another '
+    "kind is an error.",
+    "An integer key given a float (`3.0`) or a boolean is an error; a number key accepts integers.",
+    "Numbers must be finite (no `nan`, `inf`).",
+)
+
+
+# ---------------------------------------------------------------------------------------------
+# Parsing
+# ---------------------------------------------------------------------------------------------
+
+
+def _join(prefix: str, leaf: str) -> str:
+    return f"{prefix}.{leaf}" if prefix else leaf
+
+
+def _unknown(key: str, leaf: str, known: Sequence[str]) -> ConfigError:
+    close = difflib.get_close_matches(leaf, known, n=1)
+    hint = f"did you mean {close[0]!r}? " if close else ""
+    return ConfigError(key, f"unknown key ({hint}known: {', '.join(known)})")
+
+
+def _read_table(table: Mapping[Any, Any], prefix: str, keys: Sequence[_Key]) -> dict[str, Any]:
+    """Field name -> checked value for each declared key (None for a derived default)."""
+    known = [k.leaf for k in keys]
+    for leaf in table:
+        if leaf not in known:
+            raise _unknown(_join(prefix, str(leaf)), str(leaf), known)
+    values: dict[str, Any] = {}
+    for k in keys:
+        key = _join(prefix, k.leaf)
+        if k.leaf in table:
+            values[k.field] = k.kind.parse(key, table[k.leaf])
+        elif k.default is _REQUIRED:
+            raise ConfigError(key, "is required")
+        elif isinstance(k.default, _Derived):
+            values[k.field] = None
+        else:
+            values[k.field] = k.kind.parse(key, k.default)
+    return values
+
+
+def _check_inside(key: str, x: float, y: float, world: WorldSpec, what: str = "") -> None:
+    sx, sy = world.size_m
+    if not (0.0 <= x <= sx and 0.0 <= y <= sy):
+        raise ConfigError(
+            key,
+            f"{what}must be inside the world, 0 <= x <= {sx!r} and 0 <= y <= {sy!r}, "
+            f"got {_toml([x, y])}",
+        )
+
+
+def _targets(v: dict[str, Any], world: WorldSpec) -> TargetsSpec:
+    positions: FloatArray = v["positions_xy"]
+    n_given = positions.shape[0]
+    if v["count"] is None:
+        v["count"] = n_given if n_given else _DEFAULT_TARGET_COUNT
+    elif n_given and v["count"] != n_given:
+        raise ConfigError(
+            "targets.count",
+            f"must equal the number of targets.positions ({n_given}) or be omitted, "
+            f"got {v['count']}",
+        )
+    for i, (x, y) in enumerate(positions):
+        _check_inside(f"targets.positions[{i}]", float(x), float(y), world)
+    for i, (_, x, y) in enumerate(v["appear"]):
+        _check_inside(f"targets.appear[{i}]", x, y, world, what="[x, y] ")
+    n_initial, n_total = v["count"], v["count"] + len(v["appear"])
+    gone: dict[int, int] = {}
+    for i, (step, index) in enumerate(v["disappear"]):
+        if index >= n_total:
+            raise ConfigError(
+                f"targets.disappear[{i}][1]",
+                f"must be a target index < {n_total} ({n_initial} initial + "
+                f"{n_total - n_initial} appearing), got {index}",
+            )
+        if index in gone:
+            raise ConfigError(
+                f"targets.disappear[{i}][1]",
+                f"target {index} already disappears in targets.disappear[{gone[index]}]",
+            )
+        gone[index] = i
+        if index >= n_initial:
+            appears = v["appear"][index - n_initial][0]
+            if step < appears:
+                raise ConfigError(
+                    f"targets.disappear[{i}][0]",
+                    f"must be >= {appears}, the step at which target {index} appears, got {step}",
+                )
+    return TargetsSpec(**v)
+
+
+def _convex_ccw(key: str, points: FloatArray) -> FloatArray:
+    """The polygon, counter-clockwise, after checking >= 3 vertices, positive area, convexity."""
+    n = points.shape[0]
+    if n < 3:
+        raise ConfigError(key, f"must have at least 3 points, got {n}")
+    scale = float(np.max(np.abs(points)))
+    if scale == 0.0:
+        raise ConfigError(key, "must enclose a positive area")
+    q = points / scale  # in [-1, 1]: no overflow below
+    area2 = float(np.sum(q[:, 0] * np.roll(q[:, 1], -1) - np.roll(q[:, 0], -1) * q[:, 1]))
+    if area2 == 0.0:  # shoelace formula, twice the signed area
+        raise ConfigError(key, "must enclose a positive area")
+    if area2 < 0.0:
+        points, q = points[::-1], q[::-1]
+    edge = np.roll(q, -1, axis=0) - q
+    nxt = np.roll(edge, -1, axis=0)
+    cross = edge[:, 0] * nxt[:, 1] - edge[:, 1] * nxt[:, 0]
+    dot = np.sum(edge * nxt, axis=1)
+    # Strictly left turns everywhere, and one full turn in total (a star polygon makes two).
+    turning = float(np.sum(np.arctan2(cross, dot)))
+    if np.any(cross <= 0.0) or not math.isclose(turning, 2.0 * math.pi, rel_tol=1e-6):
+        raise ConfigError(
+            key, "must be convex, with its vertices in order and none repeated or collinear"
+        )
+    return _frozen(points.tolist(), 2)
+
+
+def _sensor(v: dict[str, Any]) -> SensorSpec:
+    if v["fov"] == "camera":
+        raise ConfigError(
+            "sensor.fov",
+            '"camera" needs the [camera] table of the SITL mission, not available in the '
+            "filter-only simulation",
+        )
+    polygon: FloatArray = v["fov_polygon_xy"]
+    if v["fov"] == "polygon":
+        if polygon.shape[0] == 0:
+            raise ConfigError("sensor.fov_polygon", 'is required when sensor.fov = "polygon"')
+        v["fov_polygon_xy"] = _convex_ccw("sensor.fov_polygon", polygon)
+    elif polygon.shape[0]:
+        raise ConfigError(
+            "sensor.fov_polygon",
+            f'is only allowed when sensor.fov = "polygon", got fov {_toml(v["fov"])}',
+        )
+    return SensorSpec(**v)
+
+
+def _robot(v: dict[str, Any], world: WorldSpec) -> RobotSpec:
+    x, y = v["start_xy"]
+    _check_inside("robot.start", x, y, world)
+    return RobotSpec(**v)
+
+
+def _belief(v: dict[str, Any], n_targets: int) -> BeliefSpec:
+    if v["count"] is None:
+        v["count"] = n_targets
+    count = v["count"]
+    rules = {"exact": ("equal", count == n_targets), "under": ("be <", count < n_targets),
+             "over": ("be >", count > n_targets)}
+    if v["kind"] in rules and not rules[v["kind"]][1]:
+        raise ConfigError(
+            "belief.count",
+            f"must {rules[v['kind']][0]} the number of initial targets ({n_targets}) for "
+            f"belief.kind = {_toml(v['kind'])}, got {count}",
+        )
+    tables: tuple[Mapping[Any, Any], ...] = v["components"]
+    if v["kind"] == "explicit" and not tables:
+        raise ConfigError("belief.components", 'is required when belief.kind = "explicit"')
+    if v["kind"] != "explicit" and tables:
+        raise ConfigError(
+            "belief.components",
+            f'is only allowed when belief.kind = "explicit", got kind {_toml(v["kind"])}',
+        )
+    components = []
+    for i, table in enumerate(tables):
+        c = _read_table(table, f"belief.components[{i}]", _COMPONENT_KEYS)
+        if c["cov"] is None:
+            c["cov"] = _frozen((np.eye(2) * v["variance_m2"]).tolist(), 2)
+        components.append(BeliefComponent(**c))
+    v["components"] = tuple(components)
+    return BeliefSpec(**v)
+
+
+def _section_table(data: Mapping[Any, Any], section: str) -> Mapping[Any, Any]:
+    table = data.get(section, {})
+    if not isinstance(table, Mapping):
+        raise ConfigError(section, f"must be a table, got {_describe(table)}")
+    return table
+
+
+def parse_scenario(data: Mapping[str, Any], name: str = "scenario") -> Scenario:
+    """The Scenario described by TOML data (`name` when it has no name key); ConfigError if bad."""
+    if not isinstance(data, Mapping):
+        raise ConfigError(name, f"must be a table of scenario keys, got {_describe(data)}")
+    top_known = [k.leaf for k in _TOP] + list(_SECTIONS)
+    for key in data:
+        if key in _RESERVED_TABLES:
+            raise ConfigError(
+                str(key),
+                f"the [{key}] table is reserved for the SITL mission and is not read by the "
+                "filter-only simulation",
+            )
+        if key not in top_known:
+            raise _unknown(str(key), str(key), top_known)
+    top = _read_table({k: data[k] for k in data if k not in _SECTIONS}, "", _TOP)
+    if top["name"] is None:
+        top["name"] = _Text().parse("name", name)
+    world = WorldSpec(**_read_table(_section_table(data, "world"), "world", _SECTIONS["world"]))
+
+    def read(section: str) -> dict[str, Any]:
+        return _read_table(_section_table(data, section), section, _SECTIONS[section])
+
+    targets = _targets(read("targets"), world)
+    return Scenario(
+        **top,
+        world=world,
+        targets=targets,
+        sensor=_sensor(read("sensor")),
+        robot=_robot(read("robot"), world),
+        belief=_belief(read("belief"), targets.count),
+        filter=FilterSpec(**read("filter")),
+        metrics=MetricsSpec(**read("metrics")),
+    )
+
+
+def load_scenario(path: str | Path, seed: int | None = None) -> Scenario:
+    """The Scenario in a TOML file, `seed` (when given) replacing the file's; ConfigError if bad."""
+    p = Path(path)
+    try:
+        with p.open("rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError as exc:
+        raise ConfigError(str(p), "no such scenario file") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(str(p), f"invalid TOML: {exc}") from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigError(str(p), f"invalid TOML: not UTF-8 text (byte {exc.start})") from exc
+    except OSError as exc:
+        raise ConfigError(str(p), f"cannot read the file: {exc.strerror or exc}") from exc
+    scenario = parse_scenario(data, name=p.stem)
+    if seed is not None:
+        scenario = dataclasses.replace(scenario, seed=_Int(ge=0).parse("seed", seed))
+    return scenario
+
+
+def _dump_table(spec: object, keys: Sequence[_Key]) -> dict[str, Any]:
+    return {k.leaf: k.kind.dump(getattr(spec, k.field)) for k in keys}
+
+
+def scenario_to_dict(s: Scenario) -> dict[str, Any]:
+    """The scenario as plain TOML data with every key spelled out; parse_scenario reads it back."""
+    out = _dump_table(s, _TOP)
+    for section, keys in _SECTIONS.items():
+        out[section] = _dump_table(getattr(s, section), keys)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# The generated key reference
+# ---------------------------------------------------------------------------------------------
+
+
+def _markdown_rows(prefix: str, keys: Sequence[_Key]) -> list[str]:
+    lines = ["| key | type | default | meaning |", "|---|---|---|---|"]
+    for k in keys:
+        default = k.default.doc if isinstance(k.default, _Derived) else f"`{_toml(k.default)}`"
+        origin = " *(project key)*" if k.project else ""
+        cells = (f"`{_join(prefix, k.leaf)}`", k.kind.doc, default, k.doc + origin)
+        lines.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
+    return lines
+
+
+def schema_markdown() -> str:
+    """The key reference (docs/scenario.md), generated from the declarations."""
+    lines = [
+        "# Scenario keys",
+        "",
+        "<!-- Generated by `python -m companion.sim.scenario --markdown > docs/scenario.md`;",
+        "     edit the declarations in companion/sim/scenario.py, not this file. -->",
+        "",
+        "A scenario is a TOML file (contract: `scenario-format.md` in the shared docs). Every key",
+        "below is optional unless marked required; an unknown key, a wrong type or an",
+        "out-of-range value is an error that names the key (`targets.count: must be >= 0, got",
+        "-1`). The defaults reproduce the paper's set-up (ten stationary targets, 150 m x 150 m,",
+        "25 m disk FOV, 10 % clutter, three lawn-mower sweeps, exact initial belief). Keys",
+        "marked *project key* are this project's additions to the contract.",
+        "",
+        "Coordinates are metres in a local frame whose origin is the world's lower-left corner,",
+        "x east, y north.",
+        "",
+        "## Top level",
+        "",
+        *_markdown_rows("", _TOP),
+    ]
+    for section, keys in _SECTIONS.items():
+        lines += ["", f"## `[{section}]`", "", *_markdown_rows(section, keys)]
+    lines += [
+        "",
+        "### `belief.components[i]`",
+        "",
+        "Each entry of `belief.components` is a table with these keys:",
+        "",
+        *_markdown_rows("belief.components[i]", _COMPONENT_KEYS),
+        "",
+        "## Rules across keys",
+        "",
+        *[f"- {rule}" for rule in _CROSS_KEY_RULES],
+        "",
+        "## Reserved tables",
+        "",
+        "The tables " + ", ".join(f"`[{t}]`" for t in _RESERVED_TABLES) + " belong to the",
+        "software-in-the-loop mission; the filter-only simulation rejects a file that has them,",
+        "with a message saying so.",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Print the key reference (--markdown) or check a scenario file; 2 on a bad file or usage."""
+    parser = argparse.ArgumentParser(
+        prog="python -m companion.sim.scenario", description="Scenario file keys and checks."
+    )
+    parser.add_argument("--markdown", action="store_true", help="print the key reference")
+    parser.add_argument("file", nargs="?", help="a scenario file to check")
+    args = parser.parse_args(argv)
+    if args.markdown:
+        sys.stdout.write(schema_markdown())
+        return 0
+    if args.file is None:
+        parser.print_usage(sys.stderr)
+        return 2
+    try:
+        scenario = load_scenario(args.file)
+    except ConfigError as exc:
+        print(exc, file=sys.stderr)
+        return 2
+    print(f"{args.file}: ok ({scenario.name})")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,305 @@
+"""The paper's simulation study: every experiment, Monte Carlo over seeds, tables beside the paper's.
+
+`run_study` runs each shipped `paper-*` scenario for seeds 1..N on worker processes (one per core
+by default), prints the paper's tables with our mean and spread over seeds next to the paper's
+numbers, and writes them (Markdown and CSV) with the plots under the output directory.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import math
+import sys
+from collections.abc import Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from tqdm import tqdm
+
+from companion.errors import CompanionError
+
+FloatArray = NDArray[np.float64]
+
+SERIES = ("tracks_confirmed", "weight_sum", "components", "ospa", "mahal_closest_mean",
+          "max_track_var_m2")
+
+
+@dataclass(frozen=True, slots=True)
+class Experiment:
+    """One row/column of the paper's tables: a shipped scenario and its label."""
+
+    scenario: str
+    label: str
+
+
+CLUTTER = (
+    Experiment("paper-lawnmower-exact-c0", "0 %"),
+    Experiment("paper-lawnmower-exact-c10", "10 %"),
+    Experiment("paper-lawnmower-exact-c20", "20 %"),
+)
+ESTIMATE = (
+    Experiment("paper-lawnmower-under-c10", "under"),
+    Experiment("paper-lawnmower-exact-c10", "exact"),
+    Experiment("paper-lawnmower-over-c10", "over"),
+)
+LARGEST = (
+    Experiment("paper-largest-under-c10", "under"),
+    Experiment("paper-largest-exact-c10", "exact"),
+    Experiment("paper-largest-over-c10", "over"),
+)
+NOPUSH = Experiment("paper-lawnmower-exact-c10-nopush", "without the rule")
+DYNAMIC = Experiment("paper-lawnmower-dynamic-c10", "dynamic")
+ALL = (*CLUTTER, *ESTIMATE[::2], NOPUSH, DYNAMIC, *LARGEST)
+LAWNMOWER_GOAL_RUNS = (*CLUTTER, *ESTIMATE[::2], DYNAMIC)
+
+# The paper's numbers (paper-study.md).
+PAPER_CLUTTER = {
+    "mahal_closest_mean": (3.0311, 2.3603, 2.5529),
+    "mahal_closest_std": (2.6494, 1.9604, 2.6242),
+    "mahal_second_mean": (8.2450, 7.0569, 7.0451),
+}
+PAPER_ESTIMATE = {
+    "mahal_closest_mean": (3.0930, 2.3603, 3.3152),
+    "mahal_closest_std": (2.5537, 1.9604, 2.2353),
+    "mahal_second_mean": (7.3006, 7.0569, 7.5527),
+}
+PAPER_DYNAMIC_CLOSEST = 3.1570
+PAPER_COUNT = {
+    ("tracks_confirmed", "lawnmower"): (10, 7, 8),
+    ("tracks_confirmed", "largest"): (3, 7, 5),
+    ("weight_sum", "lawnmower"): (13.3769, 18.8052, 19.6354),
+    ("weight_sum", "largest"): (11.3125, 14.1745, 13.0396),
+}
+GOALS = {"mahal_closest_mean": 1.0, "ospa_tail_mean": 3.0}
+STONE_SOUP_OSPA_TAIL = 48.6
+
+
+class _Bar:
+    """A tqdm bar on standard error with a `update_to(done, total)` callback."""
+
+    def __init__(self, bar: tqdm) -> None:  # type: ignore[type-arg]
+        self._bar = bar
+
+    def update_to(self, done: int, total: int) -> None:
+        """Set the bar to done out of total."""
+        if self._bar.total != total:
+            self._bar.total = total
+        self._bar.update(done - self._bar.n)
+
+
+@contextlib.contextmanager
+def progress_bar(description: str, unit: str) -> Iterator[_Bar]:
+    """A progress bar on standard error (quiet when standard error is not a terminal)."""
+    with tqdm(desc=description, unit=unit, file=sys.stderr, mininterval=0.5, leave=False,
+              disable=None) as bar:
+        yield _Bar(bar)
+
+
+def run_one(scenario: str, seed: int, plot_dir: Path | None) -> dict[str, Any]:
+    """Simulate one shipped scenario with one seed; its summary and time series (a worker task)."""
+    from companion.cli import resolve_scenario
+    from companion.sim.run import simulate
+    from companion.sim.scenario import load_scenario
+
+    result = simulate(load_scenario(resolve_scenario(scenario), seed=seed))
+    if plot_dir is not None:
+        from companion.sim.plots import plot_run
+
+        plot_run(result, plot_dir)
+    series = {name: np.asarray(getattr(result, name), dtype=np.float32) for name in SERIES}
+    return {"summary": result.summary(), "series": series, "t_s": result.t_s.astype(np.float32)}
+
+
+@dataclass(frozen=True, slots=True)
+class Runs:
+    """Every run of the study, by scenario name, in seed order."""
+
+    by_scenario: dict[str, list[dict[str, Any]]]
+
+    def values(self, scenario: str, key: str) -> FloatArray:
+        """One summary value over the seeds (None becomes nan)."""
+        return np.array(
+            [math.nan if r["summary"][key] is None else r["summary"][key]
+             for r in self.by_scenario[scenario]],
+            dtype=np.float64,
+        )
+
+
+def _fmt(values: FloatArray, digits: int = 2) -> str:
+    """mean ± std over seeds, with the count of undefined values if any."""
+    finite = values[np.isfinite(values)]
+    if finite.size == 0:
+        return "n/a"
+    text = f"{finite.mean():.{digits}f} ± {finite.std():.{digits}f}"
+    if finite.size < values.size:
+        text += f" ({values.size - finite.size} undefined)"
+    return text
+
+
+def _table(title: str, header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    lines = [f"### {title}", "", "| " + " | ".join(header) + " |",
+             "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    return "\n".join(lines) + "\n"
+
+
+def build_tables(runs: Runs) -> list[tuple[str, list[str], list[list[str]]]]:
+    """The paper's tables with our mean ± std over seeds beside the paper's numbers."""
+    tables: list[tuple[str, list[str], list[list[str]]]] = []
+    names = {"mahal_closest_mean": "mean to closest", "mahal_closest_std": "std to closest",
+             "mahal_second_mean": "mean to second closest"}
+    for title, exps, paper in (
+        ("Mahalanobis distance of the true targets to confirmed tracks vs clutter (lawn mower)",
+         CLUTTER, PAPER_CLUTTER),
+        ("Mahalanobis distance vs initial estimate (lawn mower, 10 % clutter)", ESTIMATE,
+         PAPER_ESTIMATE),
+    ):
+        header = ["", *[f"{e.label} (ours)" for e in exps], *[f"{e.label} (paper)" for e in exps]]
+        rows = [[names[key], *[_fmt(runs.values(e.scenario, key)) for e in exps],
+                 *[f"{v:.2f}" for v in paper[key]]] for key in names]
+        tables.append((title, header, rows))
+    tables.append((
+        "Dynamic targets (lawn mower, exact, 10 % clutter)",
+        ["", "ours", "paper"],
+        [["mean to closest", _fmt(runs.values(DYNAMIC.scenario, "mahal_closest_mean")),
+          f"{PAPER_DYNAMIC_CLOSEST:.2f}"],
+         ["mean to second closest", _fmt(runs.values(DYNAMIC.scenario, "mahal_second_mean")), ""],
+         ["confirmed tracks at the end (truth 10)",
+          _fmt(runs.values(DYNAMIC.scenario, "tracks_confirmed")), ""],
+         ["OSPA, last 20 % of steps (m)",
+          _fmt(runs.values(DYNAMIC.scenario, "ospa_tail_mean")), ""]],
+    ))
+    header = ["", *[f"{e.label} (ours)" for e in ESTIMATE], *[f"{e.label} (paper)" for e in ESTIMATE]]
+    rows = []
+    for key, what in (("tracks_confirmed", "tracks"), ("weight_sum", "sum of weights")):
+        for planner, exps in (("lawnmower", ESTIMATE), ("largest", LARGEST)):
+            rows.append([f"{what}, {planner}", *[_fmt(runs.values(e.scenario, key)) for e in exps],
+                         *[f"{v:g}" for v in PAPER_COUNT[(key, planner)]]])
+    tables.append(("Estimated number at the end, lawn mower vs largest-Gaussian (truth 10)",
+                   header, rows))
+    exact = ESTIMATE[1]
+    rows = [[label, _fmt(runs.values(e.scenario, "ospa_mean")),
+             _fmt(runs.values(e.scenario, "ospa_tail_mean")),
+             _fmt(runs.values(e.scenario, "ospa_final")),
+             _fmt(runs.values(e.scenario, "tracks_confirmed")),
+             _fmt(runs.values(e.scenario, "mahal_closest_mean"))]
+            for label, e in (("with the limited-FOV rule", exact), ("without", NOPUSH))]
+    tables.append(("The limited-FOV update rule (lawn mower, exact, 10 % clutter; OSPA c = 100, "
+                   "p = 2)", ["", "OSPA mean (m)", "OSPA last 20 % (m)", "OSPA final (m)",
+                              "confirmed at the end", "Mahalanobis to closest"], rows))
+    rows = []
+    for e in LAWNMOWER_GOAL_RUNS:
+        count_ok = runs.values(e.scenario, "tracks_confirmed") == runs.values(
+            e.scenario, "true_count")
+        mahal = runs.values(e.scenario, "mahal_closest_mean")
+        tail = runs.values(e.scenario, "ospa_tail_mean")
+        rows.append([e.scenario, f"{int(count_ok.sum())}/{count_ok.size}", _fmt(mahal),
+                     _fmt(tail), _verdict(count_ok.all() and _below(mahal, 1.0)
+                                          and _below(tail, 3.0))])
+    tables.append(("Goals over the lawn-mower runs: count = truth at the end, mean Mahalanobis to "
+                   f"closest < 1.0 (paper 2.36), OSPA last 20 % < 3 m (Stone Soup GM-PHD "
+                   f"{STONE_SOUP_OSPA_TAIL} m)",
+                   ["scenario", "count = truth", "Mahalanobis to closest", "OSPA last 20 % (m)",
+                    "goals met"], rows))
+    rows = [[e.scenario, _fmt(runs.values(e.scenario, "step_ms_median"), 3),
+             _fmt(runs.values(e.scenario, "step_ms_p95"), 3),
+             _fmt(runs.values(e.scenario, "filter_s"), 2),
+             _fmt(runs.values(e.scenario, "steps"), 0)] for e in ALL]
+    tables.append(("Filter time on this machine (per run; workers share the cores)",
+                   ["scenario", "step median (ms)", "step p95 (ms)", "filter time (s)", "steps"],
+                   rows))
+    return tables
+
+
+def _below(values: FloatArray, limit: float) -> bool:
+    return bool(np.all(np.isfinite(values)) and values.mean() < limit)
+
+
+def _verdict(ok: bool) -> str:
+    return "yes" if ok else "NO"
+
+
+def _write_outputs(runs: Runs, out_dir: Path, seeds: int) -> str:
+    """Tables (Markdown, CSV), per-run CSV and the aggregated plots; returns the Markdown."""
+    from companion.sim.plots import aggregate, plot_bands
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tables = build_tables(runs)
+    markdown = f"# The paper's study, {seeds} seeds per experiment\n\n" + "\n".join(
+        _table(title, header, rows) for title, header, rows in tables)
+    (out_dir / "tables.md").write_text(markdown)
+    for i, (title, header, rows) in enumerate(tables, start=1):
+        with (out_dir / f"table{i}.csv").open("w", newline="") as fh:
+            writer = csv.writer(fh)
+            writer.writerow([title])
+            writer.writerow(header)
+            writer.writerows(rows)
+    with (out_dir / "runs.csv").open("w", newline="") as fh:
+        first = next(iter(runs.by_scenario.values()))[0]["summary"]
+        writer = csv.DictWriter(fh, fieldnames=list(first))
+        writer.writeheader()
+        for results in runs.by_scenario.values():
+            writer.writerows(r["summary"] for r in results)
+
+    def band(e: Experiment, key: str, label: str | None = None) -> Any:
+        results = runs.by_scenario[e.scenario]
+        length = min(r["t_s"].size for r in results)
+        return aggregate(label or e.label, results[0]["t_s"][:length].astype(np.float64),
+                         [r["series"][key][:length].astype(np.float64) for r in results])
+
+    plots = out_dir / "plots"
+    plots.mkdir(exist_ok=True)
+    for exps, what in ((CLUTTER, "clutter"), (ESTIMATE, "estimate"), (LARGEST, "largest")):
+        plot_bands([band(e, "tracks_confirmed") for e in exps],
+                   f"Confirmed tracks over time ({what}), mean ± std over {seeds} seeds",
+                   "confirmed tracks", plots / f"count-tracks-{what}.png", hline=10.0)
+        plot_bands([band(e, "weight_sum") for e in exps],
+                   f"Sum of weights over time ({what})", "sum of weights",
+                   plots / f"count-weights-{what}.png", hline=10.0)
+    plot_bands([band(ESTIMATE[1], "ospa", "with the limited-FOV rule"),
+                band(NOPUSH, "ospa", "without")],
+               "OSPA (c = 100, p = 2) with and without the limited-FOV rule", "OSPA (m)",
+               plots / "ospa-push-rule.png", hline=3.0)
+    plot_bands([band(ESTIMATE[1], "mahal_closest_mean", "lawn mower, static"),
+                band(DYNAMIC, "mahal_closest_mean", "lawn mower, dynamic")],
+               "Mean Mahalanobis distance to the closest confirmed track", "distance",
+               plots / "mahalanobis-dynamic.png", hline=1.0)
+    plot_bands([band(e, "max_track_var_m2", f"{e.label}, lawn mower") for e in ESTIMATE]
+               + [band(e, "max_track_var_m2", f"{e.label}, largest-Gaussian") for e in LARGEST],
+               "Largest position variance among confirmed tracks", "variance (m²)",
+               plots / "largest-variance.png", logy=True)
+    return markdown
+
+
+def run_study(seeds: int, out_dir: Path, jobs: int, only: str | None = None) -> Runs:
+    """Run every experiment for seeds 1..seeds, print and write the tables and plots."""
+    experiments = [e for e in ALL if only is None or only in e.scenario]
+    if not experiments:
+        raise CompanionError(f"--only {only!r} matches no experiment")
+    tasks = [(e.scenario, seed) for e in experiments for seed in range(1, seeds + 1)]
+    run_plots = out_dir / "runs"
+    run_plots.mkdir(parents=True, exist_ok=True)
+    results: dict[tuple[str, int], dict[str, Any]] = {}
+    with ProcessPoolExecutor(max_workers=jobs) as pool, progress_bar("study", "run") as bar:
+        futures = {pool.submit(run_one, name, seed, run_plots if seed == 1 else None): (name, seed)
+                   for name, seed in tasks}
+        for done, future in enumerate(as_completed(futures), start=1):
+            results[futures[future]] = future.result()
+            bar.update_to(done, len(tasks))
+    runs = Runs({e.scenario: [results[(e.scenario, s)] for s in range(1, seeds + 1)]
+                 for e in experiments})
+    if len(experiments) == len(ALL):
+        print(_write_outputs(runs, out_dir, seeds))
+        print(f"wrote {out_dir / 'tables.md'}, CSV tables and plots under {out_dir}",
+              file=sys.stderr)
+    else:
+        for e in experiments:
+            print(f"{e.scenario}: " + ", ".join(
+                f"{key}={_fmt(runs.values(e.scenario, key))}"
+                for key in ("tracks_confirmed", "mahal_closest_mean", "ospa_tail_mean")))
+    return runs

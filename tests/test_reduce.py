@@ -1,0 +1,100 @@
+"""Pruning and merging (Vo & Ma Table 2): hand cases and invariants."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from companion.sat.extract import extract
+from companion.sat.mixture import NO_LABEL, Mixture, make_mixture
+from companion.sat.reduce import merge, prune
+
+
+def _random_mixture(seed: int, n: int, spread: float) -> Mixture:
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=(n, 2, 2))
+    covs = a @ a.transpose(0, 2, 1) + 0.2 * np.eye(2)
+    labels = rng.choice([NO_LABEL, 1, 2, 3], size=n)
+    return make_mixture(rng.uniform(0.0, 2.0, n), rng.uniform(0, spread, (n, 2)), covs, labels)
+
+
+def test_merge_by_hand() -> None:
+    mix = make_mixture(
+        [1.0, 0.5, 0.7],
+        [[0.0, 0.0], [1.0, 0.0], [50.0, 0.0]],
+        [np.eye(2), np.eye(2), np.eye(2)],
+        [NO_LABEL, 4, NO_LABEL],
+    )
+    out = merge(mix, 10.0, 100)
+    assert out.mixture.size == 2
+    assert out.mixture.weights == pytest.approx([1.5, 0.7])
+    mean = (1.0 * 0.0 + 0.5 * 1.0) / 1.5
+    np.testing.assert_allclose(out.mixture.means[0], [mean, 0.0])
+    spread = (1.0 * mean**2 + 0.5 * (1 - mean) ** 2) / 1.5
+    np.testing.assert_allclose(out.mixture.covs[0], np.diag([1.0 + spread, 1.0]))
+    assert out.mixture.labels.tolist() == [4, NO_LABEL]  # heaviest labelled member's label
+    assert out.group_of.tolist() == [0, 0, 1]
+
+
+def test_merge_uses_the_candidates_covariance() -> None:
+    # d^2 from the leader (w = 1) to the candidate uses the candidate's P: 9/1 = 9 <= 10 merges,
+    # while with the leader's own tighter P it would be 9/0.5 = 18.
+    mix = make_mixture([1.0, 0.3], [[0.0, 0.0], [3.0, 0.0]], [0.5 * np.eye(2), np.eye(2)])
+    assert merge(mix, 10.0, 100).mixture.size == 1
+    mix = make_mixture([1.0, 0.3], [[0.0, 0.0], [3.0, 0.0]], [np.eye(2), 0.5 * np.eye(2)])
+    assert merge(mix, 10.0, 100).mixture.size == 2
+
+
+def test_cap_keeps_the_heaviest_groups() -> None:
+    mix = make_mixture(
+        [0.2, 0.9, 0.5, 0.7], [[0, 0], [100, 0], [200, 0], [300, 0]], [np.eye(2)] * 4
+    )
+    out = merge(mix, 10.0, 2)
+    assert out.mixture.weights.tolist() == [0.9, 0.7]
+    assert out.group_of.tolist() == [-1, 0, -1, 1]
+
+
+def test_prune_drops_light_components() -> None:
+    mix = make_mixture([1e-4, 0.5, 2e-3], [[0, 0], [1, 1], [2, 2]], [np.eye(2)] * 3)
+    kept, mask = prune(mix, 1e-3)
+    assert kept.weights.tolist() == [0.5, 2e-3]
+    assert mask.tolist() == [False, True, True]
+
+
+def test_extract_repeats_heavy_components() -> None:
+    mix = make_mixture([0.4, 0.6, 1.6, 2.4], [[0, 0]] * 4, [np.eye(2)] * 4)
+    assert extract(mix, 0.5).tolist() == [1, 2, 2, 3, 3]
+
+
+@settings(deadline=None, max_examples=60)
+@given(seed=st.integers(0, 10_000), n=st.integers(0, 40), spread=st.floats(1.0, 60.0))
+def test_merge_preserves_weight_and_keeps_covariances_positive(
+    seed: int, n: int, spread: float
+) -> None:
+    mix = _random_mixture(seed, n, spread)
+    out = merge(mix, 10.0, 1000).mixture
+    assert out.total_weight == pytest.approx(mix.total_weight, rel=1e-12, abs=1e-12)
+    assert np.all(np.linalg.eigvalsh(out.covs) > 0)
+    assert np.all(out.weights >= 0)
+
+
+@settings(deadline=None, max_examples=60)
+@given(seed=st.integers(0, 10_000), n=st.integers(0, 40), threshold=st.floats(0.0, 1.0))
+def test_prune_accounts_for_every_unit_of_weight(seed: int, n: int, threshold: float) -> None:
+    mix = _random_mixture(seed, n, 30.0)
+    kept, mask = prune(mix, threshold)
+    dropped = mix.weights[~mask].sum()
+    assert kept.total_weight + dropped == pytest.approx(mix.total_weight)
+    assert np.all(kept.weights > threshold)
+
+
+@settings(deadline=None, max_examples=40)
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 30), cap=st.integers(1, 10))
+def test_capped_merge_keeps_at_most_the_cap(seed: int, n: int, cap: int) -> None:
+    mix = _random_mixture(seed, n, 200.0)
+    out = merge(mix, 10.0, cap)
+    assert out.mixture.size <= cap
+    kept_weight = mix.weights[out.group_of >= 0].sum()
+    assert out.mixture.total_weight == pytest.approx(kept_weight)
