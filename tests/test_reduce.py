@@ -34,8 +34,15 @@ def test_merge_by_hand() -> None:
     np.testing.assert_allclose(out.mixture.means[0], [mean, 0.0])
     spread = (1.0 * mean**2 + 0.5 * (1 - mean) ** 2) / 1.5
     np.testing.assert_allclose(out.mixture.covs[0], np.diag([1.0 + spread, 1.0]))
-    assert out.mixture.labels.tolist() == [4, NO_LABEL]  # heaviest labelled member's label
+    assert out.mixture.labels.tolist() == [4, NO_LABEL]  # the only labelled member's label
     assert out.group_of.tolist() == [0, 0, 1]
+
+
+def test_merged_component_keeps_the_oldest_track() -> None:
+    mix = make_mixture(
+        [1.0, 0.5, 0.2], [[0.0, 0.0], [0.5, 0.0], [0.0, 0.5]], [np.eye(2)] * 3, [9, 3, NO_LABEL]
+    )
+    assert merge(mix, 10.0, 100).mixture.labels.tolist() == [3]
 
 
 def test_merge_uses_the_candidates_covariance() -> None:

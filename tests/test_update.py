@@ -18,7 +18,7 @@ def test_one_component_one_measurement_by_hand() -> None:
     p_d = visibility(mix, EVERYWHERE, 0.9).p_d
     assert p_d == pytest.approx([0.9], abs=1e-12)
 
-    missed = no_detection(mix, Visibility(p_d, None), np.zeros(2), None)
+    missed = no_detection(mix, Visibility(p_d, 0.9), np.zeros(2), None)
     assert missed.weights == pytest.approx([0.08])
     np.testing.assert_array_equal(missed.means, mix.means)
     np.testing.assert_array_equal(missed.covs, mix.covs)
@@ -72,7 +72,7 @@ def test_unlimited_fov_and_certain_detection_is_the_standard_gm_phd() -> None:
     mix = make_mixture([1.0, 1.0], [[0.0, 0.0], [30.0, 0.0]], [np.eye(2), np.eye(2)])
     p_d = visibility(mix, EVERYWHERE, 1.0).p_d
     assert p_d == pytest.approx([1.0, 1.0])
-    assert no_detection(mix, Visibility(p_d, None), np.zeros(2), PushRule()).weights == pytest.approx([0.0, 0.0])
+    assert no_detection(mix, Visibility(p_d, 0.9), np.zeros(2), PushRule()).weights == pytest.approx([0.0, 0.0])
     z = np.array([[0.5, 0.2], [29.0, 1.0]])
     found = detection(mix, p_d, z, np.eye(2), 0.0, 0.0)
     per_measurement = found.children.weights.reshape(2, 2).sum(axis=1)
@@ -95,8 +95,8 @@ def test_push_rule_moves_band_components_away_from_the_sensor() -> None:
     )
     sensor = np.zeros(2)
     p_d = np.array([0.5, 0.9, 0.45])
-    pushed = no_detection(mix, Visibility(p_d, None), sensor, PushRule(0.4, 0.6))
+    pushed = no_detection(mix, Visibility(p_d, 0.9), sensor, PushRule(0.4, 0.6))
     # Eq. push: mu <- p_D (mu - y) + mu inside the band, unchanged outside it.
     np.testing.assert_allclose(pushed.means, [[15.0, 0.0], [0.0, 3.0], [0.0, -43.5]])
     np.testing.assert_allclose(pushed.weights, 1.0 - p_d)
-    assert no_detection(mix, Visibility(p_d, None), sensor, None).means.tolist() == mix.means.tolist()
+    assert no_detection(mix, Visibility(p_d, 0.9), sensor, None).means.tolist() == mix.means.tolist()

@@ -98,7 +98,13 @@ def _checked_measurements(scan: Scan) -> tuple[FloatArray, int]:
 
 
 def _predict(state: SatState, dt_s: float, params: SatParams, gp: GpPredictor) -> Mixture:
-    """Linear prediction for every component, GP prediction for those of confirmed tracks."""
+    """Linear prediction for every component, GP prediction for those of confirmed tracks.
+
+    A confirmed track's component takes the GP mean at the new time (Eq. gp_prediction) over the
+    track's recent detections, and its position covariance grows by the increase of the GP's
+    predictive variance over the step: growth that saturates at sigma_f^2 however long the target
+    stays out of view, where a random walk would grow without bound.
+    """
     prior = state.mixture
     f, q = transition(params.linear_model, dt_s, params.q_m2_per_s)
     predicted = predict_linear(prior, f, q, params.p_survive)
@@ -116,10 +122,11 @@ def _predict(state: SatState, dt_s: float, params: SatParams, gp: GpPredictor) -
     comp, rows = comp[usable], rows[usable]
     if comp.size == 0:
         return predicted
-    mean, var, velocity = gp.predict(
-        tracks.win_t_s[rows], tracks.win_xy[rows], tracks.win_count[rows], state.t_s + dt_s
-    )
-    return apply_gp(predicted, prior, comp, mean, var, velocity)
+    win = (tracks.win_t_s[rows], tracks.win_xy[rows], tracks.win_count[rows])
+    mean_now, var_now, velocity = gp.predict(*win, state.t_s + dt_s)
+    var_before = gp.predict(*win, state.t_s)[1]
+    growth = np.maximum(var_now - var_before, 0.0)
+    return apply_gp(predicted, prior, comp, mean_now, growth, velocity)
 
 
 def step(
@@ -155,16 +162,31 @@ def step(
         area = region.area_m2
         clutter = params.clutter_per_scan / area  # kappa(z): false positives uniform in the FOV
         newborn = params.birth_weight / area if params.birth is BirthWeight.ADAPTIVE else 0.0
-        with_mean = params.push is not None and params.push.mode is PushMode.MOMENT
-        vis = visibility(predicted, region, params.p_detect, with_mean)
-        missed = no_detection(predicted, vis, sensor_xy, params.push)
+        moments = params.push is not None and params.push.mode is PushMode.MOMENT
+        vis = visibility(predicted, region, params.p_detect, moments)
         found = detection(predicted, vis.p_d, z, r_cov, clutter, newborn)
+        # A component that a measurement claims is in view: its missed part is not pushed out.
+        claimed = (
+            found.children.weights.reshape(z.shape[0], -1).sum(axis=0) > 0.5 * predicted.weights
+            if z.shape[0] and predicted.size else np.zeros(predicted.size, dtype=bool)
+        )
+        missed = no_detection(predicted, vis, sensor_xy, params.push, claimed)
         posterior = Mixture.concat([missed, found.children])
         detected = np.arange(posterior.size) >= missed.size
         explained = found.explained
 
+    if z.shape[0]:
+        # Measurement-driven birth joins the update's components before reduction, so that a
+        # newborn component on top of a known target merges into it and keeps its track's label.
+        w_new = birth_weights(params.birth, params.birth_weight, explained, clutter, newborn)
+        born = birth(z, w_new, r_cov, params.velocity_var_m2_s2, dim)
+        posterior = Mixture.concat([posterior, born])
+        detected = np.concatenate([detected, np.ones(born.size, dtype=bool)])
+
     pruned, kept = prune(posterior, params.prune_weight)
-    merged = merge(pruned, params.merge_distance_sq, params.max_components)
+    merged = merge(
+        pruned, params.merge_distance_sq, params.max_components, observed=detected[kept]
+    )
     reduced = merged.mixture
     # A merged component owes its weight to a detection when most of it came from detections.
     in_group = merged.group_of >= 0
@@ -174,12 +196,6 @@ def step(
         minlength=reduced.size,
     )
     detected_reduced = from_detection > 0.5 * reduced.weights
-
-    if z.shape[0]:
-        w_new = birth_weights(params.birth, params.birth_weight, explained, clutter, newborn)
-        born = birth(z, w_new, r_cov, params.velocity_var_m2_s2, dim)
-        reduced = Mixture.concat([reduced, born])
-        detected_reduced = np.concatenate([detected_reduced, np.ones(born.size, dtype=bool)])
 
     est_index = extract(reduced, params.extract_weight)
     tracks, labelled = maintain(

@@ -63,10 +63,9 @@ def apply_gp(
 ) -> Mixture:
     """Predict components `index` by their tracks' GP regression instead of the linear model.
 
-    Eq. gp_prediction gives the position mean; the GP's predictive variance is the growth of the
-    prior position covariance over the step (it replaces the linear model's Q). In a
-    constant-velocity state the derivative of the GP mean becomes the velocity mean and the
-    velocity block keeps its linear prediction.
+    The GP gives the new position means and the growth of the prior position covariance over
+    the step (in place of the linear model's Q). In a constant-velocity state the derivative of
+    the GP mean becomes the velocity mean and the velocity block keeps its linear prediction.
     """
     if index.size == 0:
         return predicted

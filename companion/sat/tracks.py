@@ -102,8 +102,8 @@ class Tracks:
     last_t_s: FloatArray  # (T,) time of the last support
     means: FloatArray  # (T, d) state at the last support
     covs: FloatArray  # (T, d, d)
-    win_t_s: FloatArray  # (T, W) recent support times, right-aligned
-    win_xy: FloatArray  # (T, W, 2) recent positions, right-aligned
+    win_t_s: FloatArray  # (T, W) times of the most recent detections, right-aligned
+    win_xy: FloatArray  # (T, W, 2) positions at those detections, right-aligned
     win_count: IntArray  # (T,) valid entries at the right of the window
     log: TrackLog = field(repr=False)
     next_id: int = 0
@@ -205,9 +205,13 @@ def maintain(
 ) -> tuple[Tracks, Mixture]:
     """Associate this step's estimates with the tracks; returns the tracks and relabelled mixture.
 
-    `est_index` holds the mixture rows of the estimates (a row appears round(w) times);
-    `detected[i]` says whether component i owes its weight to a detection this step.
+    `est_index` holds the mixture rows of the estimates (a row appears round(w) times: that many
+    targets in Layer 2); `detected[i]` says whether component i owes its weight to a detection
+    this step. In Layer 3 a component supports one track, since copies of one estimate cannot be
+    told apart; when its targets separate, the mixture holds two components and the second
+    starts a new track: the split.
     """
+    est_index = np.unique(est_index)
     est_means = mix.means[est_index]
     est_covs = mix.covs[est_index]
     dist_sq = gate_distances(tracks, est_means, est_covs)
@@ -216,8 +220,19 @@ def maintain(
     supported_by = np.full(tracks.size, -1, dtype=np.int64)  # mixture row supporting each track
     has_estimate = assigned >= 0
     supported_by[assigned[has_estimate]] = est_index[has_estimate]
+    # One detection confirms one track: of the estimates a component yields (round(w) of them),
+    # only the first -- the one that continues a track, closest first -- counts it as a hit.
+    closeness = np.where(
+        has_estimate, dist_sq[np.maximum(assigned, 0), np.arange(assigned.size)], np.inf
+    ) if tracks.size else np.full(assigned.size, np.inf)
+    order = np.lexsort((closeness, est_index))
+    first = np.ones(order.size, dtype=bool)
+    first[1:] = est_index[order][1:] != est_index[order][:-1]
+    primary = np.zeros(assigned.size, dtype=bool)
+    primary[order[first]] = True
+    est_hit = detected[est_index] & primary
     hit = np.zeros(tracks.size, dtype=bool)
-    hit[assigned[has_estimate]] = detected[est_index[has_estimate]]
+    hit[assigned[has_estimate]] = est_hit[has_estimate]
     # Hold: a confirmed track with no estimate is kept by its labelled component, if it survives.
     idle = np.flatnonzero((supported_by < 0) & tracks.confirmed)
     if idle.size and mix.size:
@@ -233,7 +248,7 @@ def maintain(
     updated = _support(tracks, supported, supported_by, hit, mix, t_s, params)
 
     new_est = np.flatnonzero(~has_estimate)
-    born = _new_tracks(tracks, est_index[new_est], detected, mix, t_s, params)
+    born = _new_tracks(tracks, est_index[new_est], est_hit[new_est], mix, t_s, params)
     survivors = updated.take(alive)
     result = _concat(survivors, born) if born.size else survivors
 
@@ -264,12 +279,15 @@ def _support(
     means[rows] = mix.means[comp]
     covs[rows] = mix.covs[comp]
     hits = tracks.hits + hit
+    # The GP window holds detected positions only: a coasting track's own predictions would feed
+    # back into its next prediction.
+    seen = np.flatnonzero(hit)
     win_t = tracks.win_t_s.copy()
     win_xy = tracks.win_xy.copy()
-    win_t[rows, :-1] = win_t[rows, 1:]
-    win_xy[rows, :-1] = win_xy[rows, 1:]
-    win_t[rows, -1] = t_s
-    win_xy[rows, -1] = mix.means[comp, :2]
+    win_t[seen, :-1] = win_t[seen, 1:]
+    win_xy[seen, :-1] = win_xy[seen, 1:]
+    win_t[seen, -1] = t_s
+    win_xy[seen, -1] = mix.means[supported_by[seen], :2]
     last_t = tracks.last_t_s.copy()
     last_t[rows] = t_s
     return Tracks(
@@ -283,7 +301,7 @@ def _support(
         covs=covs,
         win_t_s=win_t,
         win_xy=win_xy,
-        win_count=np.minimum(tracks.win_count + supported, params.window),
+        win_count=np.minimum(tracks.win_count + hit, params.window),
         log=tracks.log.append(tracks.ids[rows], t_s, mix.means[comp], mix.covs[comp]),
         next_id=tracks.next_id,
     )
@@ -292,19 +310,19 @@ def _support(
 def _new_tracks(
     tracks: Tracks,
     comp: IntArray,
-    detected: BoolArray,
+    hit: BoolArray,
     mix: Mixture,
     t_s: float,
     params: TrackParams,
 ) -> Tracks:
-    """One new tentative track per unassigned estimate, with fresh ids."""
+    """One new tentative track per unassigned estimate (component rows `comp`), with fresh ids."""
     k = comp.shape[0]
     ids = tracks.next_id + np.arange(k, dtype=np.int64)
-    hits = detected[comp].astype(np.int64)
+    hits = hit.astype(np.int64)
     win_t = np.zeros((k, params.window))
     win_xy = np.zeros((k, params.window, 2))
     win_t[:, -1] = t_s
-    win_xy[:, -1] = mix.means[comp, :2]
+    win_xy[:, -1] = mix.means[comp, :2]  # only counted (win_count) when it is a detection
     return Tracks(
         ids=ids,
         hits=hits,
@@ -316,7 +334,7 @@ def _new_tracks(
         covs=mix.covs[comp],
         win_t_s=win_t,
         win_xy=win_xy,
-        win_count=np.ones(k, dtype=np.int64),
+        win_count=hits.copy(),
         log=tracks.log,
         next_id=tracks.next_id + k,
     )

@@ -8,7 +8,7 @@ from enum import Enum
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.sat.fov import Region, prob_in_region, region_moments
+from companion.sat.fov import Region, prob_in_region, truncation_moments
 from companion.sat.linalg import inv_det_2x2
 from companion.sat.mixture import Mixture, symmetrize
 
@@ -21,7 +21,7 @@ class PushMode(Enum):
     """How the limited-FOV update rule moves the no-detection component."""
 
     PAPER = "paper"  # Eq. push, for p_D inside the band
-    MOMENT = "moment"  # the mean of the truncated posterior (1 - p_D(x)) N(x; m, P), any p_D
+    MOMENT = "moment"  # the moments of the exact no-detection posterior, any p_D
 
 
 @dataclass(frozen=True, slots=True)
@@ -29,11 +29,14 @@ class PushRule:
     """The limited-FOV update rule: in the no-detection event, means move away from the FOV.
 
     PAPER applies Eq. push, mu <- p_D (mu - y) + mu, to components with p_D in [lower, upper].
-    MOMENT moves every component to the mean of its exact no-detection posterior,
-    mu <- (mu - p(D|F) p(F) E[x | x in F]) / (1 - p_D): the same repulsion, which Eq. push
-    approximates to first order in p_D for a component wide compared to the FOV (there
-    E[x | x in F] is the FOV centre y), but sized by the component's own spread, so a well-localised
-    target at the edge of the view moves by centimetres, not by p_D times the FOV radius.
+    MOMENT replaces every component by the Gaussian with the mean and covariance of its exact
+    no-detection posterior (1 - p(D|F) 1_F(x)) N(x; m, P):
+        mu <- m - c S1 / (1 - p_D),   P <- (P - c S2) / (1 - p_D) - (mu - m)(mu - m)^T,
+    with c = p(D|F), S1 = E[(x - m) 1_F], S2 = E[(x - m)(x - m)^T 1_F]. Its mean moves by
+    p_D / (1 - p_D) (m - E[x | x in F]): the same repulsion, which Eq. push approximates to first
+    order in p_D for a component wide compared to the FOV (there E[x | x in F] is the FOV centre
+    y), but sized by the component's own spread; and the covariance shrinks across the FOV edge,
+    so the next step does not erode the same mass again.
     """
 
     lower: float = 0.4
@@ -43,29 +46,43 @@ class PushRule:
 
 @dataclass(frozen=True, slots=True)
 class Visibility:
-    """Per component: p_D = p(D|F) p(F), and E[x | x in F] when the push rule needs it."""
+    """Per component: p_D = p(D|F) p(F), and the raw moments of its mass in F when needed."""
 
     p_d: FloatArray  # (n,)
-    mean_in_fov_xy: FloatArray | None  # (n, 2)
+    p_detect_in_fov: float  # c = p(D|F)
+    first: FloatArray | None = None  # (n, 2) E[(x - m) 1_F]
+    second: FloatArray | None = None  # (n, 2, 2) E[(x - m)(x - m)^T 1_F]
 
 
 def visibility(
-    pred: Mixture, region: Region, p_detect_in_fov: float, with_mean: bool = False
+    pred: Mixture, region: Region, p_detect_in_fov: float, with_moments: bool = False
 ) -> Visibility:
     """p_D = p(D|F) p(F) per component (Eq. prob_of_detection, Eq. prob_of_detection_given_f)."""
     pos_means, pos_covs = pred.means[:, :2], pred.covs[:, :2, :2]
-    if with_mean:
-        p_in_fov, mean_in = region_moments(pos_means, pos_covs, region)
-        return Visibility(p_detect_in_fov * p_in_fov, mean_in)
-    return Visibility(p_detect_in_fov * prob_in_region(pos_means, pos_covs, region), None)
+    if with_moments:
+        p_in_fov, first, second = truncation_moments(pos_means, pos_covs, region)
+        return Visibility(p_detect_in_fov * p_in_fov, p_detect_in_fov, first, second)
+    p_in_fov = prob_in_region(pos_means, pos_covs, region)
+    return Visibility(p_detect_in_fov * p_in_fov, p_detect_in_fov)
+
+
+_MOMENT_MIN_MISS = 1e-9
+"""Below this 1 - p_D a missed component keeps its prior moments: its weight is negligible and the
+moment formulas would divide by it."""
 
 
 def no_detection(
-    pred: Mixture, vis: Visibility, sensor_xy: FloatArray, push: PushRule | None
+    pred: Mixture,
+    vis: Visibility,
+    sensor_xy: FloatArray,
+    push: PushRule | None,
+    detected: NDArray[np.bool_] | None = None,
 ) -> Mixture:
     """The no-detection event (Algorithm 1, lines 4-9): w = (1 - p_D) w, P unchanged.
 
-    With the push rule, means move away from the FOV (see PushRule).
+    With the push rule, means move away from the FOV (see PushRule), except for the components
+    that a measurement of this scan claims (`detected`): the measurement says the target is in
+    view, so its missed-detection hypothesis is not pushed out of it.
     """
     p_d = vis.p_d
     weights = (1.0 - p_d) * pred.weights
@@ -74,16 +91,31 @@ def no_detection(
     means = pred.means.copy()
     if push.mode is PushMode.PAPER:
         in_band = (p_d >= push.lower) & (p_d <= push.upper)
+        if detected is not None:
+            in_band &= ~detected
         offset = means[in_band, :2] - sensor_xy
         means[in_band, :2] += p_d[in_band, None] * offset  # Eq. push
-    else:
-        if vis.mean_in_fov_xy is None:
-            raise ValueError("the moment push rule needs visibility(..., with_mean=True)")
-        moved = (p_d > 0.0) & (p_d < 1.0)
-        pd = p_d[moved, None]
-        # E[x | no detection] = (m - p_D E[x | x in F]) / (1 - p_D)
-        means[moved, :2] = (means[moved, :2] - pd * vis.mean_in_fov_xy[moved]) / (1.0 - pd)
-    return Mixture(weights, means, pred.covs, pred.labels)
+        return Mixture(weights, means, pred.covs, pred.labels)
+    if vis.first is None or vis.second is None:
+        raise ValueError("the moment push rule needs visibility(..., with_moments=True)")
+    movable = (p_d > 0.0) & (1.0 - p_d > _MOMENT_MIN_MISS)
+    if detected is not None:
+        movable &= ~detected
+    moved = np.flatnonzero(movable)
+    if moved.size == 0:
+        return Mixture(weights, means, pred.covs, pred.labels)
+    miss = (1.0 - p_d[moved])[:, None]
+    shift = -vis.p_detect_in_fov * vis.first[moved] / miss  # E[x - m | no detection]
+    pos_cov = (pred.covs[moved, :2, :2] - vis.p_detect_in_fov * vis.second[moved]) / miss[:, :, None]
+    pos_cov -= shift[:, :, None] * shift[:, None, :]
+    pos_cov = symmetrize(pos_cov)
+    det = pos_cov[:, 0, 0] * pos_cov[:, 1, 1] - pos_cov[:, 0, 1] ** 2
+    valid = (pos_cov[:, 0, 0] > 0.0) & (det > 0.0)  # round-off can break it when p_D ~ 1
+    moved, shift, pos_cov = moved[valid], shift[valid], pos_cov[valid]
+    means[moved, :2] += shift
+    covs = pred.covs.copy()
+    covs[moved, :2, :2] = pos_cov
+    return Mixture(weights, means, covs, pred.labels)
 
 
 @dataclass(frozen=True, slots=True)
