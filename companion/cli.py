@@ -70,6 +70,20 @@ def _study(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _learn_gp(args: argparse.Namespace) -> int:
+    from companion.sim.scenario import load_scenario
+    from companion.sim.training import learn_for_scenario
+
+    scenario = load_scenario(resolve_scenario(args.scenario))
+    params = learn_for_scenario(scenario, args.targets, args.steps, args.seed)
+    print(f"# learned by: companion learn-gp {args.scenario} --targets {args.targets} "
+          f"--steps {args.steps} --seed {args.seed}")
+    print(f"gp_sigma_f = {params.sigma_f_m:.4g}")
+    print(f"gp_lengthscale = {params.lengthscale_s:.4g}")
+    print(f"gp_sigma_n = {params.sigma_n_m:.4g}")
+    return EXIT_OK
+
+
 def _positive_int(text: str) -> int:
     value = int(text)
     if value < 1:
@@ -97,6 +111,16 @@ def build_parser() -> argparse.ArgumentParser:
     study.add_argument("--only", default=None,
                        help="run only the experiments whose scenario name contains this text")
     study.set_defaults(run=_study)
+
+    learn = sub.add_parser(
+        "learn-gp",
+        help="learn the GP hyperparameters from noisy observations of a scenario's target motion",
+    )
+    learn.add_argument("scenario", help="a scenario TOML file, or the name of a shipped scenario")
+    learn.add_argument("--targets", type=_positive_int, default=20, help="training trajectories")
+    learn.add_argument("--steps", type=_positive_int, default=1200, help="steps per trajectory")
+    learn.add_argument("--seed", type=int, default=1000, help="seed of the training set")
+    learn.set_defaults(run=_learn_gp)
     return parser
 
 

@@ -38,20 +38,43 @@ def test_merge_by_hand() -> None:
     assert out.group_of.tolist() == [0, 0, 1]
 
 
-def test_merged_component_keeps_the_oldest_track() -> None:
+def test_two_tracks_components_merge_only_when_both_were_just_detected() -> None:
     mix = make_mixture(
         [1.0, 0.5, 0.2], [[0.0, 0.0], [0.5, 0.0], [0.0, 0.5]], [np.eye(2)] * 3, [9, 3, NO_LABEL]
     )
-    assert merge(mix, 10.0, 100).mixture.labels.tolist() == [3]
+    # Out of view, two tracks' components are two targets however close they are.
+    assert sorted(merge(mix, 10.0, 100).mixture.labels.tolist()) == [3, 9]
+    # Both updated by detections: one target seen twice; the older track (smaller id) lives on.
+    observed = np.array([True, True, False])
+    out = merge(mix, 10.0, 100, observed=observed).mixture
+    assert out.labels.tolist() == [3]
+    assert out.total_weight == pytest.approx(1.7)
 
 
-def test_merge_uses_the_candidates_covariance() -> None:
+def test_just_detected_duplicates_merge_within_their_joint_uncertainty() -> None:
+    # 1.9 m apart with P = 0.2 I each: d^2 = 18 under either P alone, 9 under their sum.
+    mix = make_mixture([1.0, 0.8], [[0.0, 0.0], [1.9, 0.0]], [0.2 * np.eye(2)] * 2, [4, 7])
+    assert merge(mix, 10.0, 100).mixture.size == 2
+    assert merge(mix, 10.0, 100, observed=np.array([True, True])).mixture.size == 1
+
+
+def test_merge_uses_the_candidates_covariance_as_vo_and_ma() -> None:
     # d^2 from the leader (w = 1) to the candidate uses the candidate's P: 9/1 = 9 <= 10 merges,
     # while with the leader's own tighter P it would be 9/0.5 = 18.
     mix = make_mixture([1.0, 0.3], [[0.0, 0.0], [3.0, 0.0]], [0.5 * np.eye(2), np.eye(2)])
-    assert merge(mix, 10.0, 100).mixture.size == 1
+    assert merge(mix, 10.0, 100, symmetric=False).mixture.size == 1
     mix = make_mixture([1.0, 0.3], [[0.0, 0.0], [3.0, 0.0]], [np.eye(2), 0.5 * np.eye(2)])
-    assert merge(mix, 10.0, 100).mixture.size == 2
+    assert merge(mix, 10.0, 100, symmetric=False).mixture.size == 2
+
+
+def test_symmetric_merge_keeps_a_wide_component_out_of_a_precise_one() -> None:
+    # A wide belief (P = 50 I) 15 m from a well-localised target (P = 0.1 I): Vo & Ma's test
+    # (225 / 50 = 4.5 <= 10) would merge them and blow the target's covariance up.
+    mix = make_mixture([1.0, 0.5], [[0.0, 0.0], [15.0, 0.0]], [0.1 * np.eye(2), 50 * np.eye(2)])
+    assert merge(mix, 10.0, 100, symmetric=False).mixture.size == 1
+    out = merge(mix, 10.0, 100).mixture
+    assert out.size == 2
+    np.testing.assert_array_equal(out.covs[0], 0.1 * np.eye(2))
 
 
 def test_cap_keeps_the_heaviest_groups() -> None:

@@ -65,10 +65,22 @@ def test_unlabelled_estimate_continues_a_gated_track_and_far_one_starts_a_new_tr
 
 def test_a_split_keeps_the_id_on_the_closer_estimate() -> None:
     tracks, _ = _run([_mix([[0.0, 0.0]], [1.0])])
-    # One component of weight 2 counts twice: the second estimate starts a new track.
+    # Two components of one track's lineage (both labelled 0) now hold two targets apart.
+    frame = make_mixture([1.0, 1.0], [[1.2, 0.0], [0.1, 0.0]], [0.25 * np.eye(2)] * 2, [0, 0])
+    tracks, labelled = maintain(
+        tracks, frame, np.array([0, 1]), np.array([True, True]), 1.0, PARAMS
+    )
+    assert tracks.ids.tolist() == [0, 1]
+    assert labelled.labels.tolist() == [1, 0]
+    np.testing.assert_allclose(tracks.means[0], [0.1, 0.0])
+
+
+def test_copies_of_one_estimate_support_one_track() -> None:
+    tracks, _ = _run([_mix([[0.0, 0.0]], [1.0])])
+    # A component of weight 2 is two targets in Layer 2, but copies cannot be told apart.
     frame = make_mixture([2.0], [[0.1, 0.0]], [0.25 * np.eye(2)], [0])
     tracks, labelled = maintain(tracks, frame, np.array([0, 0]), np.array([True]), 1.0, PARAMS)
-    assert tracks.ids.tolist() == [0, 1]
+    assert tracks.ids.tolist() == [0]
     assert labelled.labels.tolist() == [0]
 
 

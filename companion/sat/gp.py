@@ -51,7 +51,10 @@ _LOG_2PI = math.log(2.0 * math.pi)
 # sigma_f / sigma_n <= 1e5 keeps Ky's condition number below ~1e10 * window.
 _SF_BOUNDS_REL = (1e-3, 1e2)
 _SN_BOUNDS_REL = (1e-3, 1e2)
-_LAMBDA_BOUNDS_REL = (1e-2, 1e2)  # x median time step (low), x longest chunk span (high)
+# The lengthscale's lower bound is two sampling intervals: a shorter one turns the signal into
+# white noise, indistinguishable from sigma_n, and white-noise data then has a degenerate optimum
+# (sigma_f^2 + sigma_n^2 = noise, lambda -> 0) that would make every prediction jump by sigma_f.
+_LAMBDA_BOUNDS_REL = (2.0, 1e2)  # x median time step (low), x longest chunk span (high)
 
 
 def _check_positive(key: str, value: float) -> None:
