@@ -15,7 +15,7 @@ from companion.errors import InputError
 from companion.sat.birth import BirthWeight, birth, birth_weights
 from companion.sat.extract import extract
 from companion.sat.fov import Region
-from companion.sat.gp import GpParams, GpPredictor
+from companion.sat.gp import GpParams, GpPredictor, predict_fit
 from companion.sat.mixture import NO_LABEL, Mixture, check_covariances
 from companion.sat.predict import LinearModel, apply_gp, predict_linear, transition
 from companion.sat.reduce import merge, prune
@@ -122,9 +122,9 @@ def _predict(state: SatState, dt_s: float, params: SatParams, gp: GpPredictor) -
     comp, rows = comp[usable], rows[usable]
     if comp.size == 0:
         return predicted
-    win = (tracks.win_t_s[rows], tracks.win_xy[rows], tracks.win_count[rows])
-    mean_now, var_now, velocity = gp.predict(*win, state.t_s + dt_s)
-    var_before = gp.predict(*win, state.t_s)[1]
+    fit = tracks.gp_fit(rows)
+    mean_now, var_now, velocity = predict_fit(params.gp, fit, state.t_s + dt_s)
+    var_before = predict_fit(params.gp, fit, state.t_s)[1]
     growth = np.maximum(var_now - var_before, 0.0)
     return apply_gp(predicted, prior, comp, mean_now, growth, velocity)
 
@@ -134,7 +134,8 @@ def step(
 ) -> tuple[SatState, StepReport]:
     """Advance the estimator to scan.t_s with the scan's measurements (one pass of the flowchart).
 
-    `gp` only memoises GP solves; the result does not depend on its contents.
+    `gp` fits the GP windows that changed and memoises their solves; the result does not depend
+    on its cache.
     """
     if not np.isfinite(scan.t_s) or scan.t_s < state.t_s:
         raise InputError(f"scan time {scan.t_s!r} s: must be finite and >= {state.t_s} s")
@@ -201,5 +202,7 @@ def step(
     tracks, labelled = maintain(
         state.tracks, reduced, est_index, detected_reduced, scan.t_s, params.tracks
     )
+    fresh = np.flatnonzero((tracks.win_count > 0) & (tracks.win_t_s[:, -1] == scan.t_s))
+    tracks = tracks.refit_gp(fresh, gp)
     report = StepReport(int(est_index.size), dropped, region is None)
     return SatState(scan.t_s, labelled, tracks), report

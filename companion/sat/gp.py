@@ -33,7 +33,7 @@ from scipy.optimize import minimize
 
 from companion.errors import ConfigError, InputError
 
-__all__ = ["GpParams", "GpPredictor", "gp_predict", "learn_gp_params"]
+__all__ = ["GpFit", "GpParams", "GpPredictor", "gp_predict", "learn_gp_params", "predict_fit"]
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -211,15 +211,61 @@ def gp_predict(
 # Batched, cached predictor
 # ---------------------------------------------------------------------------------------------
 
-_CacheEntry = tuple[FloatArray, FloatArray, float]
+
+
+@dataclass(frozen=True, slots=True)
+class GpFit:
+    """What prediction needs of T right-aligned windows, computed once per window.
+
+    mu (T, d) is the window's mean, beta (T, W, d) = Ky^-1 (y - mu) and ky_inv (T, W, W) =
+    Ky^-1 with Ky = K(K, K) + sigma_n^2 I, all zero outside a row's last count[i] columns; then
+    at any time t*, with k = K(t*, K): mean = mu + k^T beta (Eq. gp_prediction), velocity =
+    (dk/dt*)^T beta and variance = sigma_f^2 - k^T Ky^-1 k, a few products per row.
+    """
+
+    t_s: FloatArray  # (T, W)
+    count: IntArray  # (T,)
+    mu: FloatArray  # (T, d)
+    beta: FloatArray  # (T, W, d)
+    ky_inv: FloatArray  # (T, W, W)
+
+    @staticmethod
+    def empty(width: int, dim: int = 2) -> GpFit:
+        """No windows."""
+        return GpFit(
+            np.zeros((0, width)),
+            np.zeros(0, dtype=np.int64),
+            np.zeros((0, dim)),
+            np.zeros((0, width, dim)),
+            np.zeros((0, width, width)),
+        )
+
+
+def predict_fit(
+    params: GpParams, fit: GpFit, t_star_s: float
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Mean (T, d) [m], latent variance (T,) [m^2] and velocity (T, d) [m/s] at t_star_s."""
+    sf2 = params.sigma_f_m**2
+    lam = params.lengthscale_s
+    width = fit.t_s.shape[1]
+    valid = np.arange(width)[None, :] >= (width - fit.count)[:, None]
+    rel = np.where(valid, fit.t_s - t_star_s, 0.0)
+    scaled = rel / lam
+    k_star = np.where(valid, sf2 * np.exp(-0.5 * scaled * scaled), 0.0)  # Eq. gp_kernel
+    dk_star = k_star * (rel / lam**2)  # d/dt* K(t*, t_i) = K (t_i - t*) / lambda^2
+    mean = fit.mu + np.einsum("tw,twd->td", k_star, fit.beta)  # Eq. gp_prediction
+    velocity = np.einsum("tw,twd->td", dk_star, fit.beta)
+    var = sf2 - np.einsum("tw,twv,tv->t", k_star, fit.ky_inv, k_star)
+    return mean, np.maximum(var, _VAR_FLOOR_REL * sf2), velocity
 
 
 class GpPredictor:
-    """Batched predictions with cached solves, for the filter's hot path.
+    """Fits windows for prediction, memoising Ky^-1 by the window's internal timing.
 
-    The cache maps a row's relative timing (t_i - t_star in whole nanoseconds) to its weights; it
-    is a pure memo (results are the same with or without it) bounded to cache_size entries, least
-    recently used first out. cache_size = 0 disables it.
+    Windows sampled alike (a track detected every frame, or one whose window stopped changing)
+    share Ky^-1: the cache keys it by the time offsets within the window in whole nanoseconds and
+    computes it from those rounded offsets, so results are the same with or without the cache.
+    Bounded to cache_size entries, least recently used first out; cache_size = 0 disables it.
     """
 
     def __init__(self, params: GpParams, cache_size: int = 256) -> None:
@@ -229,22 +275,16 @@ class GpPredictor:
             raise ConfigError("filter.gp_cache_size", f"must be >= 0, got {cache_size!r}")
         self._params = params
         self._cache_size = int(cache_size)
-        self._cache: OrderedDict[bytes, _CacheEntry] = OrderedDict()
+        self._cache: OrderedDict[bytes, FloatArray] = OrderedDict()
 
     @property
     def params(self) -> GpParams:
         """The hyperparameters this predictor uses."""
         return self._params
 
-    def predict(
-        self, t_s: npt.ArrayLike, y: npt.ArrayLike, counts: npt.ArrayLike, t_star_s: float
-    ) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Predict mean (T, d) [m], latent variance (T,) [m^2] and velocity (T, d) [m/s] at
-        t_star_s for T tracks whose histories t_s (T, W) [s], y (T, W, d) [m] hold counts[i]
-        valid points right-aligned (columns W - counts[i] .. W - 1; the rest is ignored).
-
-        Row i uses its last min(counts[i], params.window) points, exactly as gp_predict would.
-        """
+    def fit(self, t_s: npt.ArrayLike, y: npt.ArrayLike, counts: npt.ArrayLike) -> GpFit:
+        """Fit T windows t_s (T, W) [s], y (T, W, d) [m] whose last counts[i] columns are valid
+        (right-aligned; the rest is ignored); a row uses at most params.window points."""
         t_arr = np.asarray(t_s, dtype=np.float64)
         y_arr = np.asarray(y, dtype=np.float64)
         c_arr = np.asarray(counts)
@@ -257,80 +297,72 @@ class GpPredictor:
             )
         if c_arr.shape != (n_rows,) or not np.issubdtype(c_arr.dtype, np.integer):
             raise InputError(f"GP counts must be integers of shape ({n_rows},), got {c_arr.shape}")
-        t_star = _check_t_star(t_star_s)
-        dim = y_arr.shape[2]
         if n_rows == 0:
-            empty = np.zeros((0, dim), dtype=np.float64)
-            return empty, np.zeros(0, dtype=np.float64), empty.copy()
+            return GpFit.empty(width, y_arr.shape[2])
         if np.any(c_arr < 1) or np.any(c_arr > width):
             raise InputError(f"GP counts must lie in 1..{width}")
-        m = np.minimum(c_arr, self._params.window).astype(np.int64)
-        mask = np.arange(width)[None, :] >= (width - m)[:, None]
+        count = np.minimum(c_arr, self._params.window).astype(np.int64)
+        valid = np.arange(width)[None, :] >= (width - count)[:, None]
         if not (
-            np.all(np.isfinite(t_arr) | ~mask) and np.all(np.isfinite(y_arr) | ~mask[:, :, None])
+            np.all(np.isfinite(t_arr) | ~valid) and np.all(np.isfinite(y_arr) | ~valid[:, :, None])
         ):
             raise InputError("GP history contains a non-finite time or position")
-        rel = np.where(mask, t_arr, t_star) - t_star
-        if width > 1 and np.any((np.diff(rel, axis=1) < 0.0) & mask[:, :-1]):
+        rel = np.where(valid, t_arr - t_arr[:, -1:], 0.0)  # offsets from the newest point
+        if width > 1 and np.any((np.diff(rel, axis=1) < 0.0) & valid[:, :-1]):
             raise InputError("GP history times must be non-decreasing")
         _check_rel(rel)
         rel_q, rel_ns = _quantise_rel(rel)
+        ky_inv = np.zeros((n_rows, width, width))
+        for i in range(n_rows):
+            n = int(count[i])
+            ky_inv[i, width - n :, width - n :] = self._ky_inv(rel_q[i, width - n :], rel_ns[i, width - n :])
+        mask3 = valid[:, :, None]
+        y0 = np.where(mask3, y_arr, 0.0)
+        mu = y0.sum(axis=1) / count[:, None]  # constant prior mean: the window's mean
+        centred = np.where(mask3, y0 - mu[:, None, :], 0.0)
+        beta = np.einsum("twv,tvd->twd", ky_inv, centred)
+        return GpFit(t_arr.copy(), count, mu, beta, ky_inv)
 
-        # Rows with the same valid relative timing share one weight vector.
-        if np.all(m == m[0]) and np.all(rel_ns == rel_ns[0]):
-            unique_rows = np.zeros(1, dtype=np.int64)
-            inverse = np.zeros(n_rows, dtype=np.int64)
-        else:
-            keyed = np.where(mask, rel_ns, np.iinfo(np.int64).min)
-            _, unique_rows, inverse = np.unique(
-                keyed, axis=0, return_index=True, return_inverse=True
-            )
-            inverse = inverse.reshape(-1)
-        entries = self._lookup(rel_q, rel_ns, m, unique_rows)
+    def predict(
+        self, t_s: npt.ArrayLike, y: npt.ArrayLike, counts: npt.ArrayLike, t_star_s: float
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Predict mean (T, d) [m], latent variance (T,) [m^2] and velocity (T, d) [m/s] at
+        t_star_s for T tracks whose histories t_s (T, W) [s], y (T, W, d) [m] hold counts[i]
+        valid points right-aligned (columns W - counts[i] .. W - 1; the rest is ignored).
 
-        n_unique = unique_rows.shape[0]
-        alpha_u = np.zeros((n_unique, width), dtype=np.float64)
-        alpha_vel_u = np.zeros((n_unique, width), dtype=np.float64)
-        var_u = np.empty(n_unique, dtype=np.float64)
-        for u, (a, av, v) in enumerate(entries):
-            alpha_u[u, width - a.shape[0] :] = a
-            alpha_vel_u[u, width - a.shape[0] :] = av
-            var_u[u] = v
-        mean, vel = _combine(y_arr, mask, m, alpha_u[inverse], alpha_vel_u[inverse])
-        return mean, var_u[inverse], vel
+        Row i uses its last min(counts[i], params.window) points, exactly as gp_predict would.
+        """
+        t_star = _check_t_star(t_star_s)
+        fit = self.fit(t_s, y, counts)
+        if fit.count.size:
+            _check_rel(fit.t_s[:, -1:] - t_star)
+        return predict_fit(self._params, fit, t_star)
 
-    def _lookup(
-        self, rel_q: FloatArray, rel_ns: IntArray, m: IntArray, rows: IntArray
-    ) -> list[_CacheEntry]:
-        """Weights for the given representative rows: from the cache, else solved (batched by
-        window length) and cached."""
-        width = rel_q.shape[1]
-        entries: list[_CacheEntry | None] = []
-        keys: list[bytes] = []
-        missing: dict[int, list[int]] = {}
-        for j, row in enumerate(rows):
-            n = int(m[row])
-            key = rel_ns[row, width - n :].tobytes()
-            keys.append(key)
-            hit = self._cache.get(key)
-            if hit is not None:
-                self._cache.move_to_end(key)
-            else:
-                missing.setdefault(n, []).append(j)
-            entries.append(hit)
-        for n, js in missing.items():
-            sel = rows[np.asarray(js)]
-            alpha, alpha_vel, var = _weights(self._params, rel_q[sel, width - n :])
-            alpha.setflags(write=False)
-            alpha_vel.setflags(write=False)
-            for i, j in enumerate(js):
-                entry = (alpha[i], alpha_vel[i], float(var[i]))
-                entries[j] = entry
-                if self._cache_size > 0:
-                    self._cache[keys[j]] = entry
-                    if len(self._cache) > self._cache_size:
-                        self._cache.popitem(last=False)
-        return [e for e in entries if e is not None]
+    def _ky_inv(self, rel_q: FloatArray, rel_ns: IntArray) -> FloatArray:
+        """(K(K, K) + sigma_n^2 I)^-1 for one window's offsets, from the cache if it has them."""
+        key = rel_ns.tobytes()
+        hit = self._cache.get(key)
+        if hit is not None:
+            self._cache.move_to_end(key)
+            return hit
+        params = self._params
+        diff = (rel_q[:, None] - rel_q[None, :]) / params.lengthscale_s
+        ky = params.sigma_f_m**2 * np.exp(-0.5 * diff * diff)  # Eq. gp_kernel: K(K, K)
+        ky[np.diag_indices_from(ky)] += params.sigma_n_m**2
+        try:
+            inv = np.asarray(np.linalg.inv(ky), dtype=np.float64)
+        except np.linalg.LinAlgError as exc:
+            raise InputError(
+                "GP covariance K + sigma_n^2 I is numerically singular: sigma_n is too small "
+                "relative to sigma_f for these times"
+            ) from exc
+        inv = 0.5 * (inv + inv.T)
+        inv.setflags(write=False)
+        if self._cache_size > 0:
+            self._cache[key] = inv
+            if len(self._cache) > self._cache_size:
+                self._cache.popitem(last=False)
+        return inv
 
 
 # ---------------------------------------------------------------------------------------------

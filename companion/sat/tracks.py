@@ -12,11 +12,12 @@ unsupported step. Each track keeps its history (time, mean, covariance) in an ap
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.sat.gp import GpFit, GpPredictor
 from companion.sat.linalg import inv_det_2x2
 from companion.sat.mixture import NO_LABEL, Mixture
 
@@ -105,6 +106,9 @@ class Tracks:
     win_t_s: FloatArray  # (T, W) times of the most recent detections, right-aligned
     win_xy: FloatArray  # (T, W, 2) positions at those detections, right-aligned
     win_count: IntArray  # (T,) valid entries at the right of the window
+    gp_mu: FloatArray  # (T, 2) GP fit of each window (see GpFit), refitted when it changes
+    gp_beta: FloatArray  # (T, W, 2)
+    gp_ky_inv: FloatArray  # (T, W, W)
     log: TrackLog = field(repr=False)
     next_id: int = 0
 
@@ -128,8 +132,27 @@ class Tracks:
             win_t_s=np.zeros((0, window)),
             win_xy=np.zeros((0, window, 2)),
             win_count=np.zeros(0, dtype=np.int64),
+            gp_mu=np.zeros((0, 2)),
+            gp_beta=np.zeros((0, window, 2)),
+            gp_ky_inv=np.zeros((0, window, window)),
             log=TrackLog.empty(dim),
         )
+
+    def gp_fit(self, rows: IntArray) -> GpFit:
+        """The GP fit of the given rows' windows."""
+        return GpFit(
+            self.win_t_s[rows], self.win_count[rows], self.gp_mu[rows], self.gp_beta[rows],
+            self.gp_ky_inv[rows],
+        )
+
+    def refit_gp(self, rows: IntArray, gp: GpPredictor) -> Tracks:
+        """The tracks with the GP fits of the given rows' windows recomputed."""
+        if rows.size == 0:
+            return self
+        fit = gp.fit(self.win_t_s[rows], self.win_xy[rows], self.win_count[rows])
+        mu, beta, ky_inv = self.gp_mu.copy(), self.gp_beta.copy(), self.gp_ky_inv.copy()
+        mu[rows], beta[rows], ky_inv[rows] = fit.mu, fit.beta, fit.ky_inv
+        return replace(self, gp_mu=mu, gp_beta=beta, gp_ky_inv=ky_inv)
 
     def take(self, keep: BoolArray | IntArray) -> Tracks:
         """The tracks selected by a mask or an index, sharing the log."""
@@ -145,6 +168,9 @@ class Tracks:
             self.win_t_s[keep],
             self.win_xy[keep],
             self.win_count[keep],
+            self.gp_mu[keep],
+            self.gp_beta[keep],
+            self.gp_ky_inv[keep],
             self.log,
             self.next_id,
         )
@@ -302,6 +328,9 @@ def _support(
         win_t_s=win_t,
         win_xy=win_xy,
         win_count=np.minimum(tracks.win_count + hit, params.window),
+        gp_mu=tracks.gp_mu,
+        gp_beta=tracks.gp_beta,
+        gp_ky_inv=tracks.gp_ky_inv,
         log=tracks.log.append(tracks.ids[rows], t_s, mix.means[comp], mix.covs[comp]),
         next_id=tracks.next_id,
     )
@@ -335,6 +364,9 @@ def _new_tracks(
         win_t_s=win_t,
         win_xy=win_xy,
         win_count=hits.copy(),
+        gp_mu=np.zeros((k, 2)),
+        gp_beta=np.zeros((k, params.window, 2)),
+        gp_ky_inv=np.zeros((k, params.window, params.window)),
         log=tracks.log,
         next_id=tracks.next_id + k,
     )
@@ -355,6 +387,9 @@ def _concat(old: Tracks, new: Tracks) -> Tracks:
         win_t_s=np.concatenate([old.win_t_s, new.win_t_s]),
         win_xy=np.concatenate([old.win_xy, new.win_xy]),
         win_count=np.concatenate([old.win_count, new.win_count]),
+        gp_mu=np.concatenate([old.gp_mu, new.gp_mu]),
+        gp_beta=np.concatenate([old.gp_beta, new.gp_beta]),
+        gp_ky_inv=np.concatenate([old.gp_ky_inv, new.gp_ky_inv]),
         log=log,
         next_id=new.next_id,
     )
