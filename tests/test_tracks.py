@@ -19,15 +19,14 @@ def _run(
 ) -> tuple[Tracks, Mixture]:
     tracks = tracks or Tracks.empty(2, PARAMS.window)
     labelled = frames[0]
-    for k, frame in enumerate(frames):
+    for k, given in enumerate(frames):
         # Carry last step's labels over to this step's components (the filter's labels survive
         # predict/update); frames that set labels themselves keep theirs.
-        labels = frame.labels if np.any(frame.labels != NO_LABEL) else labelled.labels
-        if labels.size != frame.size:
-            labels = np.full(frame.size, NO_LABEL)
-        frame = Mixture(frame.weights, frame.means, frame.covs, labels)
+        labels = given.labels if np.any(given.labels != NO_LABEL) else labelled.labels
+        if labels.size != given.size:
+            labels = np.full(given.size, NO_LABEL)
+        frame = Mixture(given.weights, given.means, given.covs, labels)
         est = np.flatnonzero(frame.weights > 0.5)
-        est = np.repeat(est, np.maximum(np.floor(frame.weights[est] + 0.5), 1).astype(int))
         tracks, labelled = maintain(
             tracks, frame, est, np.full(frame.size, detected), t0 + k, PARAMS
         )
@@ -79,7 +78,8 @@ def test_copies_of_one_estimate_support_one_track() -> None:
     tracks, _ = _run([_mix([[0.0, 0.0]], [1.0])])
     # A component of weight 2 is two targets in Layer 2, but copies cannot be told apart.
     frame = make_mixture([2.0], [[0.1, 0.0]], [0.25 * np.eye(2)], [0])
-    tracks, labelled = maintain(tracks, frame, np.array([0, 0]), np.array([True]), 1.0, PARAMS)
+    rows = np.flatnonzero(frame.weights > 0.5)  # what the filter passes: each row once
+    tracks, labelled = maintain(tracks, frame, rows, np.array([True]), 1.0, PARAMS)
     assert tracks.ids.tolist() == [0]
     assert labelled.labels.tolist() == [0]
 

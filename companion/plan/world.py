@@ -23,4 +23,6 @@ class World:
 
     def contains(self, xy: FloatArray) -> NDArray[np.bool_]:
         """Whether each point (..., 2) lies inside the world (boundary included)."""
-        return np.all((xy >= 0.0) & (xy <= [self.width_m, self.height_m]), axis=-1)
+        upper = np.array([self.width_m, self.height_m])
+        inside: NDArray[np.bool_] = np.all((xy >= 0.0) & (xy <= upper), axis=-1)
+        return inside

@@ -16,7 +16,7 @@ from companion.sat.birth import BirthWeight, birth, birth_weights
 from companion.sat.extract import extract
 from companion.sat.fov import Region
 from companion.sat.gp import GpParams, GpPredictor, predict_fit
-from companion.sat.mixture import NO_LABEL, Mixture, check_covariances
+from companion.sat.mixture import NO_LABEL, Mixture
 from companion.sat.predict import LinearModel, apply_gp, predict_linear, transition
 from companion.sat.reduce import merge, prune
 from companion.sat.tracks import TrackParams, Tracks, maintain
@@ -32,7 +32,7 @@ class SatParams:
     p_survive: float = 1.0
     p_detect: float = 0.98  # p(D|F): detection probability of a target inside the FOV
     clutter_per_scan: float = 0.1  # expected false positives per scan, uniform in the FOV
-    push: PushRule | None = PushRule()  # the limited-FOV update rule, None to switch it off
+    push: PushRule | None = field(default_factory=PushRule)  # limited-FOV rule; None: off
     extract_weight: float = 0.5
     prune_weight: float = 1e-3
     merge_distance_sq: float = 10.0  # Vo & Ma's U, on the squared Mahalanobis distance
@@ -97,6 +97,21 @@ def _checked_measurements(scan: Scan) -> tuple[FloatArray, int]:
     return z[finite], int(z.shape[0] - finite.sum())
 
 
+def _checked_r(r: object) -> FloatArray:
+    """The scan's measurement covariance as a symmetric positive definite 2x2, or InputError."""
+    r_cov = np.asarray(r, dtype=np.float64)
+    if r_cov.shape != (2, 2):
+        raise InputError(f"scan measurement covariance: expected shape (2, 2), got {r_cov.shape}")
+    (a, b), (c, d) = r_cov.tolist()
+    if not all(map(np.isfinite, (a, b, c, d))):
+        raise InputError("scan measurement covariance: must be finite")
+    if abs(b - c) > 1e-9 * max(abs(a), abs(d)):
+        raise InputError("scan measurement covariance: must be symmetric")
+    if not (a > 0.0 and a * d - b * c > 0.0):
+        raise InputError("scan measurement covariance: must be positive definite")
+    return r_cov
+
+
 def _predict(state: SatState, dt_s: float, params: SatParams, gp: GpPredictor) -> Mixture:
     """Linear prediction for every component, GP prediction for those of confirmed tracks.
 
@@ -112,21 +127,20 @@ def _predict(state: SatState, dt_s: float, params: SatParams, gp: GpPredictor) -
     if not params.use_gp or tracks.size == 0 or prior.size == 0:
         return predicted
     comp = np.flatnonzero(prior.labels != NO_LABEL)
-    rows = np.searchsorted(tracks.ids, prior.labels[comp])  # track ids are kept sorted
-    rows = np.minimum(rows, tracks.size - 1)
+    rows = np.minimum(np.searchsorted(tracks.ids, prior.labels[comp]), tracks.size - 1)
     usable = (
-        (tracks.ids[rows] == prior.labels[comp])
+        (tracks.ids[rows] == prior.labels[comp])  # track ids are kept sorted
         & tracks.confirmed[rows]
         & (tracks.win_count[rows] >= 2)
     )
     comp, rows = comp[usable], rows[usable]
     if comp.size == 0:
         return predicted
-    fit = tracks.gp_fit(rows)
-    mean_now, var_now, velocity = predict_fit(params.gp, fit, state.t_s + dt_s)
-    var_before = predict_fit(params.gp, fit, state.t_s)[1]
-    growth = np.maximum(var_now - var_before, 0.0)
-    return apply_gp(predicted, prior, comp, mean_now, growth, velocity)
+    mean, var, velocity = predict_fit(
+        params.gp, tracks.gp_fit(), np.array([state.t_s + dt_s, state.t_s]), rows
+    )
+    growth = np.maximum(var[0] - var[1], 0.0)
+    return apply_gp(predicted, prior, comp, mean[0], growth, velocity[0])
 
 
 def step(
@@ -147,10 +161,7 @@ def step(
     if region is None:
         dropped += z.shape[0]
         z = np.zeros((0, 2))
-    r_cov = np.asarray(scan.r_cov, dtype=np.float64)
-    if r_cov.shape != (2, 2):
-        raise InputError(f"scan measurement covariance: expected shape (2, 2), got {r_cov.shape}")
-    check_covariances(r_cov[None], "scan measurement covariance")
+    r_cov = _checked_r(scan.r_cov)
 
     predicted = _predict(state, scan.t_s - state.t_s, params, gp)
     dim = predicted.dim
@@ -199,8 +210,9 @@ def step(
     detected_reduced = from_detection > 0.5 * reduced.weights
 
     est_index = extract(reduced, params.extract_weight)
+    est_rows = np.flatnonzero(reduced.weights > params.extract_weight)
     tracks, labelled = maintain(
-        state.tracks, reduced, est_index, detected_reduced, scan.t_s, params.tracks
+        state.tracks, reduced, est_rows, detected_reduced, scan.t_s, params.tracks
     )
     fresh = np.flatnonzero((tracks.win_count > 0) & (tracks.win_t_s[:, -1] == scan.t_s))
     tracks = tracks.refit_gp(fresh, gp)

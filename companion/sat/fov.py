@@ -38,6 +38,7 @@ from dataclasses import dataclass
 from typing import TypeAlias
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 from scipy.special import ndtr, owens_t
 
@@ -88,8 +89,8 @@ _CORR_TOL = 1e-12
 
 _TWO_PI = 2.0 * math.pi
 _INV_SQRT_2PI = 1.0 / math.sqrt(_TWO_PI)
+_INV_SQRT_2 = 1.0 / math.sqrt(2.0)
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(_N_NODES)
-_WINDOW = np.array([-_K_SIGMA, _K_SIGMA])
 
 
 def _readonly(a: FloatArray) -> FloatArray:
@@ -300,85 +301,131 @@ def _disk(
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Mass in the disk (n,) and, up to `order`, the moments E[(x - m) 1_F] (n, 2) and
     E[(x - m)(x - m)^T 1_F] (n, 2, 2) (zeros when not asked)."""
+    n = means.shape[0]
+    mass = np.empty(n)
+    moment = np.zeros((n, 2))
+    second = np.zeros((n, 2, 2))
     a, b, d = cov
-    radius = disk.radius_m
-    e = disk.center_xy - means  # c - m
-    dist = np.hypot(e[:, 0], e[:, 1])
-    hd = 0.5 * (a - d)
-    lam1 = 0.5 * (a + d) + np.hypot(hd, b)  # larger eigenvalue of P
-    mass = (dist < radius).astype(np.float64)  # decided: boundary beyond K sigma_max
-    moment = np.zeros_like(means)
-    second = _decided_second(mass, cov, order)
-    todo = np.flatnonzero(np.abs(dist - radius) <= _K_SIGMA * np.sqrt(lam1))
-    if todo.size == 0:
-        return mass, moment, second
-    if todo.size < means.shape[0]:
-        a, b, d, hd, lam1, e = a[todo], b[todo], d[todo], hd[todo], lam1[todo], e[todo]
-    # Principal frame: v1 = (c, s), v2 = (-s, c); sigma_1 >= sigma_2.
-    sig = np.empty_like(e)
-    sig[:, 0] = lam1
-    sig[:, 1] = (a * d - b * b) / lam1  # lam2 = det P / lam1
-    np.sqrt(sig, out=sig)
-    ang = 0.5 * np.arctan2(b, hd)
-    c, s = np.cos(ang), np.sin(ang)
-    # Per principal axis i (middle index): ellipse centre z_ci = v_i . (c - m) / sigma_i,
-    # semi-axis H_i = r / sigma_i, the window [lo, hi] of sin th where |z_ci + H_i sin th| <= K,
-    # and the point of that window nearest to sin th = 0.
-    ax = np.empty((todo.size, 2, 5))
-    zc, semi, window = ax[:, :, 0], ax[:, :, 1], ax[:, :, 2:4]
-    zc[:, 0] = c * e[:, 0] + s * e[:, 1]
-    zc[:, 1] = c * e[:, 1] - s * e[:, 0]
-    zc /= sig
-    np.divide(radius, sig, out=semi)
-    np.divide(_WINDOW - zc[:, :, None], semi[:, :, None], out=window)
-    np.minimum(np.maximum(window, -1.0, out=window), 1.0, out=window)
-    ax[:, :, 4] = np.maximum(window[:, :, 0], np.minimum(window[:, :, 1], 0.0))
-    # Variation of cos th over each window (cos is largest at the nearest point); the outer axis
-    # j is the one where the inner half-chord H_k cos th varies least.
-    cosines = np.sqrt(1.0 - ax[:, :, 2:5] ** 2)
-    swing = 2.0 * cosines[:, :, 2] - cosines[:, :, 0] - cosines[:, :, 1]
-    outer2 = swing[:, 1] * semi[:, 0] < swing[:, 0] * semi[:, 1]
-    sel = np.where(outer2[:, None, None], ax[:, ::-1, :], ax)  # [:, 0]: axis j, [:, 1]: axis k
-    zj, hj = sel[:, 0, 0:1], sel[:, 0, 1:2]
-    zk, hk = sel[:, 1, 0:1], sel[:, 1, 1:2]
-    th = np.arcsin(sel[:, 0, 2:4])
-    half = 0.5 * (th[:, 1:2] - th[:, 0:1])
-    sin_th = np.sin((th[:, 0:1] + half) + half * _GL_X)  # (u, N) Gauss-Legendre nodes
-    cos_th = np.sqrt(1.0 - sin_th * sin_th)  # th in [-pi/2, pi/2]: cos th >= 0
-    zj_th = zj + hj * sin_th
-    # Green's theorem on the ellipse: dz_j = H_j cos th dth, phi(z_j) times the chord's mass.
-    outer = cos_th * np.exp(-0.5 * zj_th * zj_th)
-    chord = hk * cos_th
-    za = -np.abs(zk)  # Phi(z + h) - Phi(z - h) = Phi(-|z| + h) - Phi(-|z| - h): no cancellation
-    w_mass = outer * (ndtr(za + chord) - ndtr(za - chord))
-    scale = (_INV_SQRT_2PI * half * hj)[:, 0]  # dth = half dx; phi(z) = exp(-z^2 / 2) / sqrt(2 pi)
-    # Eq. prob_of_detection_given_f:
-    mass[todo] = np.minimum(np.maximum((w_mass @ _GL_W) * scale, 0.0), 1.0)
-    if order >= 1:
-        mz = np.empty_like(e)  # int_F z phi(z) dz along (j, k)
-        mz[:, 0] = ((w_mass * zj_th) @ _GL_W) * scale
-        lo_k, hi_k = zk - chord, zk + chord
-        phi_lo, phi_hi = np.exp(-0.5 * lo_k * lo_k), np.exp(-0.5 * hi_k * hi_k)
-        # int_lo^hi z phi(z) dz = phi(lo) - phi(hi):
-        w_first = outer * (phi_lo - phi_hi)
-        mz[:, 1] = (w_first @ _GL_W) * (_INV_SQRT_2PI * scale)
-        swap = outer2[:, None]
-        mz = np.where(swap, mz[:, ::-1], mz) * sig  # along (v1, v2), in metres
-        moment[todo, 0] = c * mz[:, 0] - s * mz[:, 1]  # x - m = [v1 v2] diag(sigma) z
-        moment[todo, 1] = s * mz[:, 0] + c * mz[:, 1]
-    if order >= 2:
-        mzz = np.empty((todo.size, 2, 2))  # int_F z z^T phi(z) dz along (j, k)
-        mzz[:, 0, 0] = ((w_mass * zj_th * zj_th) @ _GL_W) * scale
-        mzz[:, 0, 1] = mzz[:, 1, 0] = ((w_first * zj_th) @ _GL_W) * (_INV_SQRT_2PI * scale)
-        # int_lo^hi z^2 phi(z) dz = Phi(hi) - Phi(lo) - (hi phi(hi) - lo phi(lo)):
-        w_sq = w_mass - outer * (hi_k * phi_hi - lo_k * phi_lo) * _INV_SQRT_2PI
-        mzz[:, 1, 1] = (w_sq @ _GL_W) * scale
-        mzz = np.where(swap[:, :, None], mzz[:, ::-1, ::-1], mzz)
-        frame = np.empty((todo.size, 2, 2))  # x - m = A z, A = [v1 v2] diag(sigma)
-        frame[:, 0, 0], frame[:, 0, 1] = c * sig[:, 0], -s * sig[:, 1]
-        frame[:, 1, 0], frame[:, 1, 1] = s * sig[:, 0], c * sig[:, 1]
-        second[todo] = frame @ mzz @ frame.transpose(0, 2, 1)
+    _disk_kernel(
+        means, a, b, d, disk.center_xy, disk.radius_m, order, _GL_X, _GL_W, mass, moment, second
+    )
     return mass, moment, second
+
+
+@njit(cache=True, nogil=True)
+def _ndtr(x: float) -> float:  # pragma: no cover - compiled
+    """Phi(x), the standard normal CDF."""
+    return 0.5 * math.erfc(-x * _INV_SQRT_2)
+
+
+@njit(cache=True, nogil=True)
+def _disk_kernel(  # pragma: no cover - compiled; tested through _disk
+    means: FloatArray,
+    a: FloatArray,
+    b: FloatArray,
+    d: FloatArray,
+    center: FloatArray,
+    radius: float,
+    order: int,
+    gl_x: FloatArray,
+    gl_w: FloatArray,
+    mass: FloatArray,
+    moment: FloatArray,
+    second: FloatArray,
+) -> None:
+    """Fill mass, moment and second (see _disk) component by component."""
+    for i in range(means.shape[0]):
+        ex = center[0] - means[i, 0]  # c - m
+        ey = center[1] - means[i, 1]
+        dist = math.hypot(ex, ey)
+        hd = 0.5 * (a[i] - d[i])
+        lam1 = 0.5 * (a[i] + d[i]) + math.hypot(hd, b[i])  # larger eigenvalue of P
+        if abs(dist - radius) > _K_SIGMA * math.sqrt(lam1):  # decided: boundary beyond K sigma
+            inside = 1.0 if dist < radius else 0.0
+            mass[i] = inside
+            if order >= 2:
+                second[i, 0, 0] = inside * a[i]
+                second[i, 0, 1] = second[i, 1, 0] = inside * b[i]
+                second[i, 1, 1] = inside * d[i]
+            continue
+        # Principal frame: v1 = (c, s), v2 = (-s, c); sigma_1 >= sigma_2.
+        sig1 = math.sqrt(lam1)
+        sig2 = math.sqrt((a[i] * d[i] - b[i] * b[i]) / lam1)  # lam2 = det P / lam1
+        ang = 0.5 * math.atan2(b[i], hd)
+        c, s = math.cos(ang), math.sin(ang)
+        # Per principal axis: ellipse centre z_c = v . (c - m) / sigma, semi-axis H = r / sigma,
+        # the window [lo, hi] of sin th where |z_c + H sin th| <= K, and the point of that
+        # window nearest to sin th = 0.
+        zc1 = (c * ex + s * ey) / sig1
+        zc2 = (c * ey - s * ex) / sig2
+        h1, h2 = radius / sig1, radius / sig2
+        lo1 = min(max((-_K_SIGMA - zc1) / h1, -1.0), 1.0)
+        hi1 = min(max((_K_SIGMA - zc1) / h1, -1.0), 1.0)
+        lo2 = min(max((-_K_SIGMA - zc2) / h2, -1.0), 1.0)
+        hi2 = min(max((_K_SIGMA - zc2) / h2, -1.0), 1.0)
+        near1 = max(lo1, min(hi1, 0.0))
+        near2 = max(lo2, min(hi2, 0.0))
+        # Variation of cos th over each window (cos is largest at the nearest point); the outer
+        # axis j is the one where the inner half-chord H_k cos th varies least.
+        swing1 = 2.0 * math.sqrt(1.0 - near1 * near1) - math.sqrt(1.0 - lo1 * lo1) - math.sqrt(
+            1.0 - hi1 * hi1
+        )
+        swing2 = 2.0 * math.sqrt(1.0 - near2 * near2) - math.sqrt(1.0 - lo2 * lo2) - math.sqrt(
+            1.0 - hi2 * hi2
+        )
+        outer2 = swing2 * h1 < swing1 * h2
+        if outer2:
+            zj, hj, lo, hi, zk, hk = zc2, h2, lo2, hi2, zc1, h1
+        else:
+            zj, hj, lo, hi, zk, hk = zc1, h1, lo1, hi1, zc2, h2
+        th_lo, th_hi = math.asin(lo), math.asin(hi)
+        half = 0.5 * (th_hi - th_lo)
+        mid = th_lo + half
+        za = -abs(zk)  # Phi(z + h) - Phi(z - h) = Phi(-|z| + h) - Phi(-|z| - h): no cancellation
+        m0 = mj = mk = mjj = mjk = mkk = 0.0
+        for q in range(gl_x.shape[0]):  # Gauss-Legendre nodes over th
+            sin_th = math.sin(mid + half * gl_x[q])
+            cos_th = math.sqrt(max(1.0 - sin_th * sin_th, 0.0))
+            zj_th = zj + hj * sin_th
+            # Green's theorem on the ellipse: dz_j = H_j cos th dth, phi(z_j) times the chord.
+            outer = gl_w[q] * cos_th * math.exp(-0.5 * zj_th * zj_th)
+            chord = hk * cos_th
+            w_mass = outer * (_ndtr(za + chord) - _ndtr(za - chord))
+            m0 += w_mass
+            if order >= 1:
+                lo_k, hi_k = zk - chord, zk + chord
+                phi_lo, phi_hi = math.exp(-0.5 * lo_k * lo_k), math.exp(-0.5 * hi_k * hi_k)
+                w_first = outer * (phi_lo - phi_hi)  # int_lo^hi z phi = phi(lo) - phi(hi)
+                mj += w_mass * zj_th
+                mk += w_first
+                mjj += w_mass * zj_th * zj_th
+                mjk += w_first * zj_th
+                # int_lo^hi z^2 phi(z) dz = Phi(hi) - Phi(lo) - (hi phi(hi) - lo phi(lo)):
+                mkk += w_mass - outer * (hi_k * phi_hi - lo_k * phi_lo) * _INV_SQRT_2PI
+        scale = _INV_SQRT_2PI * half * hj  # dth = half dx; phi(z) = exp(-z^2 / 2) / sqrt(2 pi)
+        # Eq. prob_of_detection_given_f:
+        mass[i] = min(max(m0 * scale, 0.0), 1.0)
+        if order < 1:
+            continue
+        fj, fk = mj * scale, mk * _INV_SQRT_2PI * scale  # int_F z phi(z) dz along (j, k)
+        f1, f2 = (fk, fj) if outer2 else (fj, fk)
+        f1 *= sig1
+        f2 *= sig2
+        moment[i, 0] = c * f1 - s * f2  # x - m = [v1 v2] diag(sigma) z
+        moment[i, 1] = s * f1 + c * f2
+        if order < 2:
+            continue
+        sjj, sjk, skk = mjj * scale, mjk * _INV_SQRT_2PI * scale, mkk * scale
+        s11, s12, s22 = (skk, sjk, sjj) if outer2 else (sjj, sjk, skk)
+        # E[(x - m)(x - m)^T 1_F] = A S A^T with A = [v1 v2] diag(sigma).
+        a11, a12, a21, a22 = c * sig1, -s * sig2, s * sig1, c * sig2
+        t11 = a11 * s11 + a12 * s12
+        t12 = a11 * s12 + a12 * s22
+        t21 = a21 * s11 + a22 * s12
+        t22 = a21 * s12 + a22 * s22
+        second[i, 0, 0] = t11 * a11 + t12 * a12
+        second[i, 0, 1] = second[i, 1, 0] = t11 * a21 + t12 * a22
+        second[i, 1, 1] = t21 * a21 + t22 * a22
 
 
 def _polygon(
@@ -429,7 +476,7 @@ def _polygon(
         moment[:, 1] = l21[:, 0] * mz1 + l22[:, 0] * mz2
     if order >= 2:
         # int_F z_i z_j phi dz = delta_ij p(F) - sum_e n_j int_e z_i phi ds (divergence theorem);
-        # along an edge z = f + t u with foot point f, int z phi ds = f line + u phi(h) [phi(t)]_b^a.
+        # along an edge z = f + t u (foot point f): int z phi ds = f line + u phi(h) [phi(t)]_b^a.
         fx, fy = ax - ta * ux, ay - ta * uy
         tip = edge_phi * _INV_SQRT_2PI * (np.exp(-0.5 * ta * ta) - np.exp(-0.5 * tb * tb))
         along = (fx * line + ux * tip, fy * line + uy * tip)  # int_e z_i phi ds, i = x, y
@@ -443,16 +490,6 @@ def _polygon(
         chol[:, 0, 0], chol[:, 1, 0], chol[:, 1, 1] = l11[:, 0], l21[:, 0], l22[:, 0]
         second = chol @ mzz @ chol.transpose(0, 2, 1)  # x - m = L z
     return mass, moment, second
-
-
-def _decided_second(mass: FloatArray, cov: CovEntries, order: int) -> FloatArray:
-    """E[(x - m)(x - m)^T 1_F] of components whose mass is decided (0 or 1): 0 or P."""
-    second = np.zeros((mass.shape[0], 2, 2))
-    if order >= 2:
-        a, b, d = cov
-        second[:, 0, 0], second[:, 0, 1], second[:, 1, 0], second[:, 1, 1] = a, b, b, d
-        second *= mass[:, None, None]
-    return second
 
 
 def _raw_moments(

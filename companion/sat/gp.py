@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
+from numba import njit
 from scipy.optimize import minimize
 
 from companion.errors import ConfigError, InputError
@@ -242,21 +243,71 @@ class GpFit:
 
 
 def predict_fit(
-    params: GpParams, fit: GpFit, t_star_s: float
+    params: GpParams, fit: GpFit, t_star_s: float | FloatArray, rows: IntArray | None = None
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Mean (T, d) [m], latent variance (T,) [m^2] and velocity (T, d) [m/s] at t_star_s."""
-    sf2 = params.sigma_f_m**2
-    lam = params.lengthscale_s
-    width = fit.t_s.shape[1]
-    valid = np.arange(width)[None, :] >= (width - fit.count)[:, None]
-    rel = np.where(valid, fit.t_s - t_star_s, 0.0)
-    scaled = rel / lam
-    k_star = np.where(valid, sf2 * np.exp(-0.5 * scaled * scaled), 0.0)  # Eq. gp_kernel
-    dk_star = k_star * (rel / lam**2)  # d/dt* K(t*, t_i) = K (t_i - t*) / lambda^2
-    mean = fit.mu + np.einsum("tw,twd->td", k_star, fit.beta)  # Eq. gp_prediction
-    velocity = np.einsum("tw,twd->td", dk_star, fit.beta)
-    var = sf2 - np.einsum("tw,twv,tv->t", k_star, fit.ky_inv, k_star)
-    return mean, np.maximum(var, _VAR_FLOOR_REL * sf2), velocity
+    """Mean [m], latent variance [m^2] and velocity [m/s] of the windows `rows` (all by default)
+    at t_star_s: shapes (T, d), (T,), (T, d), each with a leading axis of length k when t_star_s
+    is an array of k times."""
+    times = np.atleast_1d(np.asarray(t_star_s, dtype=np.float64))
+    picked = np.arange(fit.count.shape[0]) if rows is None else rows
+    dim = fit.mu.shape[1]
+    mean = np.empty((times.size, picked.size, dim))
+    var = np.empty((times.size, picked.size))
+    velocity = np.empty((times.size, picked.size, dim))
+    _predict_kernel(
+        fit.t_s, fit.count, fit.mu, fit.beta, fit.ky_inv, picked, times,
+        params.sigma_f_m**2, params.lengthscale_s, mean, var, velocity,
+    )
+    if np.ndim(t_star_s) == 0:
+        return mean[0], var[0], velocity[0]
+    return mean, var, velocity
+
+
+@njit(cache=True, nogil=True)
+def _predict_kernel(  # pragma: no cover - compiled; tested through predict_fit
+    t_s: FloatArray,
+    count: IntArray,
+    mu: FloatArray,
+    beta: FloatArray,
+    ky_inv: FloatArray,
+    rows: IntArray,
+    times: FloatArray,
+    sf2: float,
+    lam: float,
+    mean: FloatArray,
+    var: FloatArray,
+    velocity: FloatArray,
+) -> None:
+    """mean = mu + k^T beta (Eq. gp_prediction), velocity = (dk/dt*)^T beta,
+    var = sigma_f^2 - k^T Ky^-1 k, with k = K(t*, K) (Eq. gp_kernel), per row and time."""
+    width, dim = beta.shape[1], beta.shape[2]
+    k = np.empty(width)
+    floor = _VAR_FLOOR_REL * sf2
+    for a in range(times.shape[0]):
+        for out in range(rows.shape[0]):
+            r = rows[out]
+            first = width - count[r]
+            for w in range(width):
+                if w < first:
+                    k[w] = 0.0
+                else:
+                    scaled = (t_s[r, w] - times[a]) / lam
+                    k[w] = sf2 * math.exp(-0.5 * scaled * scaled)
+            for c in range(dim):
+                m = mu[r, c]
+                v = 0.0
+                for w in range(first, width):
+                    m += k[w] * beta[r, w, c]
+                    v += k[w] * (t_s[r, w] - times[a]) / (lam * lam) * beta[r, w, c]
+                mean[a, out, c] = m
+                velocity[a, out, c] = v
+            quad = 0.0
+            for w in range(first, width):
+                row = 0.0
+                for u in range(first, width):
+                    row += ky_inv[r, w, u] * k[u]
+                quad += k[w] * row
+            var[a, out] = max(sf2 - quad, floor)
 
 
 class GpPredictor:
@@ -282,9 +333,16 @@ class GpPredictor:
         """The hyperparameters this predictor uses."""
         return self._params
 
-    def fit(self, t_s: npt.ArrayLike, y: npt.ArrayLike, counts: npt.ArrayLike) -> GpFit:
+    def fit(
+        self, t_s: npt.ArrayLike, y: npt.ArrayLike, counts: npt.ArrayLike, check: bool = True
+    ) -> GpFit:
         """Fit T windows t_s (T, W) [s], y (T, W, d) [m] whose last counts[i] columns are valid
-        (right-aligned; the rest is ignored); a row uses at most params.window points."""
+        (right-aligned; the rest is ignored); a row uses at most params.window points.
+
+        check=False skips the input checks, for windows the tracker built itself.
+        """
+        if not check:
+            return self._fit(*(np.asarray(a) for a in (t_s, y, counts)))
         t_arr = np.asarray(t_s, dtype=np.float64)
         y_arr = np.asarray(y, dtype=np.float64)
         c_arr = np.asarray(counts)
@@ -311,11 +369,20 @@ class GpPredictor:
         if width > 1 and np.any((np.diff(rel, axis=1) < 0.0) & valid[:, :-1]):
             raise InputError("GP history times must be non-decreasing")
         _check_rel(rel)
+        return self._fit(t_arr, y_arr, c_arr)
+
+    def _fit(self, t_arr: FloatArray, y_arr: FloatArray, c_arr: IntArray) -> GpFit:
+        """fit() after its checks."""
+        n_rows, width = t_arr.shape
+        count = np.minimum(c_arr, self._params.window).astype(np.int64)
+        valid = np.arange(width)[None, :] >= (width - count)[:, None]
+        rel = np.where(valid, t_arr - t_arr[:, -1:], 0.0)  # offsets from the newest point
         rel_q, rel_ns = _quantise_rel(rel)
         ky_inv = np.zeros((n_rows, width, width))
         for i in range(n_rows):
             n = int(count[i])
-            ky_inv[i, width - n :, width - n :] = self._ky_inv(rel_q[i, width - n :], rel_ns[i, width - n :])
+            first = width - n
+            ky_inv[i, first:, first:] = self._ky_inv(rel_q[i, first:], rel_ns[i, first:])
         mask3 = valid[:, :, None]
         y0 = np.where(mask3, y_arr, 0.0)
         mu = y0.sum(axis=1) / count[:, None]  # constant prior mean: the window's mean

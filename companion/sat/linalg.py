@@ -24,8 +24,7 @@ def inv_stack(a: FloatArray) -> FloatArray:
     """Inverse of each d x d matrix in a stack (n, d, d); closed form for d = 2."""
     if a.shape[-1] == 2:
         return inv_det_2x2(a)[0]
-    result: FloatArray = np.linalg.inv(a)
-    return result
+    return np.asarray(np.linalg.inv(a), dtype=np.float64)
 
 
 def quad_form(diff: FloatArray, inv: FloatArray) -> FloatArray:

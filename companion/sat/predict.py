@@ -1,4 +1,4 @@
-"""Prediction (Algorithm 1, steps 1-2): a linear motion model, or GP regression for confirmed tracks."""
+"""Prediction (Algorithm 1, steps 1-2): a linear motion model, or GP regression for tracks."""
 
 from __future__ import annotations
 

@@ -5,10 +5,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from companion.sat.linalg import inv_stack
-from companion.sat.mixture import NO_LABEL, Mixture, symmetrize
+from companion.sat.mixture import NO_LABEL, Mixture
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -55,33 +56,12 @@ def merge(
     if n == 0:
         return MergeResult(mix, np.zeros(0, dtype=np.int64))
     order = np.argsort(-mix.weights, kind="stable")
-    diff = mix.means[None, :, :] - mix.means[:, None, :]  # diff[j, i] = m_i - m_j
-    inv = inv_stack(mix.covs)
-    close = np.einsum("jid,idk,jik->ji", diff, inv, diff) <= distance_sq_threshold
-    if symmetric:
-        close &= close.T  # d^2 under P_j: the same quadratic form with the roles swapped
-    labelled = mix.labels != NO_LABEL
-    if np.count_nonzero(labelled) > 1:
-        lab = mix.labels
-        apart = labelled[:, None] & labelled[None, :] & (lab[:, None] != lab[None, :])
-        close &= ~apart
-        if observed is not None and np.any(apart & observed[:, None] & observed[None, :]):
-            # Two tracks' components both just updated by detections are one target seen twice
-            # when their means agree within both their uncertainties: U under P_i + P_j.
-            joint = inv_stack(mix.covs[None, :, :, :] + mix.covs[:, None, :, :])
-            same = np.einsum("jid,jidk,jik->ji", diff, joint, diff) <= distance_sq_threshold
-            close |= apart & observed[:, None] & observed[None, :] & same
-    leader_of = np.arange(n)
-    linked = close.sum(axis=0) + close.sum(axis=1) > 2  # has a neighbour besides itself
-    if np.any(linked):
-        remaining = linked.copy()
-        for j in order:
-            if remaining[j]:
-                members = remaining & close[j]
-                leader_of[members] = j
-                remaining &= ~members
-    leaders = order[leader_of[order] == order]  # groups in the greedy (heaviest-first) order
-    leaders = leaders[:max_components]
+    seen = np.zeros(n, dtype=np.bool_) if observed is None else observed
+    leader_of = _greedy_groups(
+        mix.means, inv_stack(mix.covs), mix.covs, mix.labels, seen, order,
+        distance_sq_threshold, symmetric, observed is not None,
+    )
+    leaders = order[leader_of[order] == order][:max_components]  # greedy (heaviest-first) order
     group_index = np.full(n, -1, dtype=np.int64)
     group_index[leaders] = np.arange(leaders.size)
     group_of = group_index[leader_of]
@@ -90,24 +70,119 @@ def merge(
     return MergeResult(_moment_match(mix, group_of, leaders.size), group_of)
 
 
+@njit(cache=True, nogil=True)
+def _greedy_groups(  # pragma: no cover - compiled; tested through merge
+    means: FloatArray,
+    inv: FloatArray,
+    covs: FloatArray,
+    labels: IntArray,
+    observed: NDArray[np.bool_],
+    order: IntArray,
+    threshold: float,
+    symmetric: bool,
+    label_rule: bool,
+) -> IntArray:
+    """The leader (heaviest member) of each component's group in Vo & Ma's greedy merging."""
+    n, dim = means.shape
+    leader_of = np.full(n, -1, dtype=np.int64)
+    diff = np.empty(dim)
+    summed = np.empty((dim, dim))
+    for j in order:
+        if leader_of[j] >= 0:
+            continue
+        leader_of[j] = j
+        for i in range(n):
+            if leader_of[i] >= 0:
+                continue
+            for k in range(dim):
+                diff[k] = means[i, k] - means[j, k]
+            both_tracks = labels[i] != NO_LABEL and labels[j] != NO_LABEL
+            if both_tracks and labels[i] != labels[j]:
+                # Two tracks' components: one target only when both were just detected and
+                # agree within their joint uncertainty.
+                if not (label_rule and observed[i] and observed[j]):
+                    continue
+                summed[:, :] = covs[i] + covs[j]
+                if float(diff @ np.linalg.solve(summed, diff)) <= threshold:
+                    leader_of[i] = j
+                continue
+            if _quad(diff, inv[i]) > threshold:  # Vo & Ma: the candidate's covariance
+                continue
+            if symmetric and _quad(diff, inv[j]) > threshold:
+                continue
+            leader_of[i] = j
+    return leader_of
+
+
+@njit(cache=True, nogil=True)
+def _quad(x: FloatArray, a: FloatArray) -> float:  # pragma: no cover - compiled
+    """x^T A x for a small vector, without temporaries."""
+    total = 0.0
+    for r in range(x.shape[0]):
+        row = 0.0
+        for c in range(x.shape[0]):
+            row += a[r, c] * x[c]
+        total += x[r] * row
+    return total
+
+
 def _moment_match(mix: Mixture, group_of: IntArray, n_groups: int) -> Mixture:
-    """Sum of weights, weighted mean and spread-of-means covariance of each group."""
-    kept = group_of >= 0
-    g = group_of[kept]
-    w = mix.weights[kept]
-    means = mix.means[kept]
-    covs = mix.covs[kept]
+    """Sum of weights, weighted mean and spread-of-means covariance of each group (Vo & Ma
+    Table 2); a group of one is passed through exactly."""
     d = mix.dim
-    onehot = np.zeros((n_groups, g.size))
-    onehot[g, np.arange(g.size)] = w
-    w_out = onehot.sum(axis=1)
-    m_out = (onehot @ means) / w_out[:, None]
-    spread = means - m_out[g]
-    scatter = covs + spread[:, :, None] * spread[:, None, :]
-    p_out = (onehot @ scatter.reshape(g.size, d * d)).reshape(n_groups, d, d) / w_out[:, None, None]
-    labels = np.full(n_groups, np.iinfo(np.int64).max, dtype=np.int64)
-    member_labels = mix.labels[kept]
-    labelled = member_labels != NO_LABEL
-    np.minimum.at(labels, g[labelled], member_labels[labelled])
-    labels[labels == np.iinfo(np.int64).max] = NO_LABEL
-    return Mixture(w_out, m_out, symmetrize(p_out), labels)
+    w_out = np.zeros(n_groups)
+    m_out = np.zeros((n_groups, d))
+    p_out = np.zeros((n_groups, d, d))
+    labels = np.full(n_groups, NO_LABEL, dtype=np.int64)
+    _moment_match_kernel(
+        mix.weights, mix.means, mix.covs, mix.labels, group_of, w_out, m_out, p_out, labels
+    )
+    return Mixture(w_out, m_out, p_out, labels)
+
+
+@njit(cache=True, nogil=True)
+def _moment_match_kernel(  # pragma: no cover - compiled; tested through merge
+    weights: FloatArray,
+    means: FloatArray,
+    covs: FloatArray,
+    labels: IntArray,
+    group_of: IntArray,
+    w_out: FloatArray,
+    m_out: FloatArray,
+    p_out: FloatArray,
+    labels_out: IntArray,
+) -> None:
+    """Fill the merged groups' weights, means, covariances and labels (smallest member label)."""
+    n, d = means.shape
+    size = np.zeros(w_out.shape[0], dtype=np.int64)
+    last = np.zeros(w_out.shape[0], dtype=np.int64)
+    for i in range(n):
+        g = group_of[i]
+        if g < 0:
+            continue
+        size[g] += 1
+        last[g] = i
+        w_out[g] += weights[i]
+        for k in range(d):
+            m_out[g, k] += weights[i] * means[i, k]  # w = sum w_i, m = sum w_i m_i / w
+        if labels[i] != NO_LABEL and (labels_out[g] == NO_LABEL or labels[i] < labels_out[g]):
+            labels_out[g] = labels[i]
+    for g in range(w_out.shape[0]):
+        if size[g] == 1:
+            m_out[g] = means[last[g]]
+            p_out[g] = covs[last[g]]
+        else:
+            m_out[g] /= w_out[g]
+    for i in range(n):
+        g = group_of[i]
+        if g < 0 or size[g] == 1:
+            continue
+        for r in range(d):  # P = sum w_i (P_i + (m - m_i)(m - m_i)^T) / w
+            for c in range(d):
+                spread = (m_out[g, r] - means[i, r]) * (m_out[g, c] - means[i, c])
+                p_out[g, r, c] += weights[i] * (covs[i, r, c] + spread) / w_out[g]
+    for g in range(w_out.shape[0]):
+        for r in range(d):
+            for c in range(r + 1, d):
+                sym = 0.5 * (p_out[g, r, c] + p_out[g, c, r])
+                p_out[g, r, c] = p_out[g, c, r] = sym

@@ -138,18 +138,15 @@ class Tracks:
             log=TrackLog.empty(dim),
         )
 
-    def gp_fit(self, rows: IntArray) -> GpFit:
-        """The GP fit of the given rows' windows."""
-        return GpFit(
-            self.win_t_s[rows], self.win_count[rows], self.gp_mu[rows], self.gp_beta[rows],
-            self.gp_ky_inv[rows],
-        )
+    def gp_fit(self) -> GpFit:
+        """The GP fit of every track's window (a view, no copy)."""
+        return GpFit(self.win_t_s, self.win_count, self.gp_mu, self.gp_beta, self.gp_ky_inv)
 
     def refit_gp(self, rows: IntArray, gp: GpPredictor) -> Tracks:
         """The tracks with the GP fits of the given rows' windows recomputed."""
         if rows.size == 0:
             return self
-        fit = gp.fit(self.win_t_s[rows], self.win_xy[rows], self.win_count[rows])
+        fit = gp.fit(self.win_t_s[rows], self.win_xy[rows], self.win_count[rows], check=False)
         mu, beta, ky_inv = self.gp_mu.copy(), self.gp_beta.copy(), self.gp_ky_inv.copy()
         mu[rows], beta[rows], ky_inv[rows] = fit.mu, fit.beta, fit.ky_inv
         return replace(self, gp_mu=mu, gp_beta=beta, gp_ky_inv=ky_inv)
@@ -197,93 +194,77 @@ def _associate(
     if tracks.size == 0 or n_est == 0:
         return assigned
     gated = dist_sq <= gate_sq
-    # 1. An estimate continues the track its component is labelled with, if it gates with it.
-    row_of_id = {int(i): k for k, i in enumerate(tracks.ids)}
-    claimed = np.zeros(tracks.size, dtype=bool)
-    by_distance: list[tuple[float, int, int]] = []
-    for e, label in enumerate(est_labels):
-        row = row_of_id.get(int(label), -1) if label != NO_LABEL else -1
-        if row >= 0 and gated[row, e]:
-            by_distance.append((float(dist_sq[row, e]), row, e))
-    for _, row, e in sorted(by_distance):
-        if not claimed[row]:
-            claimed[row] = True
-            assigned[e] = row
+    # 1. An estimate continues the track its component is labelled with, if it gates with it
+    #    (of two estimates with one label, the closer).
+    rows = np.minimum(np.searchsorted(tracks.ids, est_labels), tracks.size - 1)  # ids sorted
+    cols = np.arange(n_est)
+    claims = (tracks.ids[rows] == est_labels) & gated[rows, cols]
+    if claims.any():
+        e = cols[claims][np.argsort(dist_sq[rows[claims], cols[claims]], kind="stable")]
+        first_rows, first = np.unique(rows[e], return_index=True)
+        assigned[e[first]] = first_rows
     # 2. The rest gate with the unclaimed tracks, nearest pairs first.
     free = np.flatnonzero(assigned < 0)
-    if free.size and not claimed.all():
-        rows, cols = np.nonzero(gated[:, free] & ~claimed[:, None])
-        pairs = sorted(zip(dist_sq[rows, free[cols]].tolist(), rows.tolist(), free[cols].tolist()))
-        for _, row, e in pairs:
-            if not claimed[row] and assigned[e] < 0:
-                claimed[row] = True
-                assigned[e] = row
+    if free.size:
+        claimed = np.zeros(tracks.size, dtype=bool)
+        claimed[assigned[assigned >= 0]] = True
+        t_rows, t_cols = np.nonzero(gated[:, free] & ~claimed[:, None])
+        if t_rows.size:
+            e_cols = free[t_cols]
+            for k in np.argsort(dist_sq[t_rows, e_cols], kind="stable"):
+                row, est = t_rows[k], e_cols[k]
+                if not claimed[row] and assigned[est] < 0:
+                    claimed[row] = True
+                    assigned[est] = row
     return assigned
 
 
 def maintain(
     tracks: Tracks,
     mix: Mixture,
-    est_index: IntArray,
+    est_rows: IntArray,
     detected: BoolArray,
     t_s: float,
     params: TrackParams,
 ) -> tuple[Tracks, Mixture]:
     """Associate this step's estimates with the tracks; returns the tracks and relabelled mixture.
 
-    `est_index` holds the mixture rows of the estimates (a row appears round(w) times: that many
-    targets in Layer 2); `detected[i]` says whether component i owes its weight to a detection
-    this step. In Layer 3 a component supports one track, since copies of one estimate cannot be
-    told apart; when its targets separate, the mixture holds two components and the second
-    starts a new track: the split.
+    `est_rows` are the mixture rows extracted as targets, each once: a component of weight w is
+    round(w) targets in Layer 2, but in Layer 3 it supports one track, since copies of one
+    estimate cannot be told apart; when its targets separate, the mixture holds two components
+    and the second starts a new track: the split. `detected[i]` says whether component i owes
+    its weight to a detection this step.
     """
-    est_index = np.unique(est_index)
-    est_means = mix.means[est_index]
-    est_covs = mix.covs[est_index]
-    dist_sq = gate_distances(tracks, est_means, est_covs)
-    assigned = _associate(tracks, mix.labels[est_index], dist_sq, params.gate_sq)
-
-    supported_by = np.full(tracks.size, -1, dtype=np.int64)  # mixture row supporting each track
+    dist_sq = gate_distances(tracks, mix.means[est_rows], mix.covs[est_rows])
+    assigned = _associate(tracks, mix.labels[est_rows], dist_sq, params.gate_sq)
     has_estimate = assigned >= 0
-    supported_by[assigned[has_estimate]] = est_index[has_estimate]
-    # One detection confirms one track: of the estimates a component yields (round(w) of them),
-    # only the first -- the one that continues a track, closest first -- counts it as a hit.
-    closeness = np.where(
-        has_estimate, dist_sq[np.maximum(assigned, 0), np.arange(assigned.size)], np.inf
-    ) if tracks.size else np.full(assigned.size, np.inf)
-    order = np.lexsort((closeness, est_index))
-    first = np.ones(order.size, dtype=bool)
-    first[1:] = est_index[order][1:] != est_index[order][:-1]
-    primary = np.zeros(assigned.size, dtype=bool)
-    primary[order[first]] = True
-    est_hit = detected[est_index] & primary
-    hit = np.zeros(tracks.size, dtype=bool)
-    hit[assigned[has_estimate]] = est_hit[has_estimate]
+    supported_by = np.full(tracks.size, -1, dtype=np.int64)  # mixture row supporting each track
+    supported_by[assigned[has_estimate]] = est_rows[has_estimate]
     # Hold: a confirmed track with no estimate is kept by its labelled component, if it survives.
     idle = np.flatnonzero((supported_by < 0) & tracks.confirmed)
-    if idle.size and mix.size:
-        label_rows = np.flatnonzero(mix.labels != NO_LABEL)
-        heaviest = label_rows[np.argsort(-mix.weights[label_rows], kind="stable")]
+    labelled = np.flatnonzero(mix.labels != NO_LABEL) if idle.size else idle
+    if labelled.size:
+        heaviest = labelled[np.argsort(-mix.weights[labelled], kind="stable")]
         ids, first = np.unique(mix.labels[heaviest], return_index=True)
-        lookup = dict(zip(ids.tolist(), heaviest[first].tolist()))
-        for row in idle:
-            supported_by[row] = lookup.get(int(tracks.ids[row]), -1)
+        at = np.minimum(np.searchsorted(ids, tracks.ids[idle]), ids.size - 1)
+        found = ids[at] == tracks.ids[idle]
+        supported_by[idle[found]] = heaviest[first[at[found]]]
+    hit = np.zeros(tracks.size, dtype=bool)
+    hit[assigned[has_estimate]] = detected[est_rows[has_estimate]]
 
     supported = supported_by >= 0
-    alive = supported | (tracks.confirmed & (t_s - tracks.last_t_s <= params.timeout_s))
     updated = _support(tracks, supported, supported_by, hit, mix, t_s, params)
-
-    new_est = np.flatnonzero(~has_estimate)
-    born = _new_tracks(tracks, est_index[new_est], est_hit[new_est], mix, t_s, params)
-    survivors = updated.take(alive)
-    result = _concat(survivors, born) if born.size else survivors
-
+    alive = supported | (tracks.confirmed & (t_s - tracks.last_t_s <= params.timeout_s))
+    survivors = updated if alive.all() else updated.take(alive)
+    new_rows = est_rows[~has_estimate]
     labels = np.full(mix.size, NO_LABEL, dtype=np.int64)
-    rows = np.concatenate([supported_by[alive][supported[alive]], est_index[new_est]])
-    owners = np.concatenate([survivors.ids[supported[alive]], born.ids])
-    labels[rows[::-1]] = owners[::-1]  # a component shared by two tracks keeps the first
-    relabelled = Mixture(mix.weights, mix.means, mix.covs, labels)
-    return result, relabelled
+    held = supported[alive]
+    labels[supported_by[alive][held]] = survivors.ids[held]
+    if new_rows.size == 0:
+        return survivors, Mixture(mix.weights, mix.means, mix.covs, labels)
+    born = _new_tracks(tracks, new_rows, detected[new_rows], mix, t_s, params)
+    labels[new_rows] = born.ids
+    return _concat(survivors, born), Mixture(mix.weights, mix.means, mix.covs, labels)
 
 
 def _support(
@@ -296,9 +277,9 @@ def _support(
     params: TrackParams,
 ) -> Tracks:
     """The tracks with this step's support applied to the supported rows."""
-    if not supported.any():
-        return tracks
     rows = np.flatnonzero(supported)
+    if rows.size == 0:
+        return tracks
     comp = supported_by[rows]
     means = tracks.means.copy()
     covs = tracks.covs.copy()
@@ -308,12 +289,14 @@ def _support(
     # The GP window holds detected positions only: a coasting track's own predictions would feed
     # back into its next prediction.
     seen = np.flatnonzero(hit)
-    win_t = tracks.win_t_s.copy()
-    win_xy = tracks.win_xy.copy()
-    win_t[seen, :-1] = win_t[seen, 1:]
-    win_xy[seen, :-1] = win_xy[seen, 1:]
-    win_t[seen, -1] = t_s
-    win_xy[seen, -1] = mix.means[supported_by[seen], :2]
+    win_t, win_xy, win_count = tracks.win_t_s, tracks.win_xy, tracks.win_count
+    if seen.size:
+        win_t, win_xy = win_t.copy(), win_xy.copy()
+        win_t[seen, :-1] = win_t[seen, 1:]
+        win_xy[seen, :-1] = win_xy[seen, 1:]
+        win_t[seen, -1] = t_s
+        win_xy[seen, -1] = mix.means[supported_by[seen], :2]
+        win_count = np.minimum(win_count + hit, params.window)
     last_t = tracks.last_t_s.copy()
     last_t[rows] = t_s
     return Tracks(
@@ -327,7 +310,7 @@ def _support(
         covs=covs,
         win_t_s=win_t,
         win_xy=win_xy,
-        win_count=np.minimum(tracks.win_count + hit, params.window),
+        win_count=win_count,
         gp_mu=tracks.gp_mu,
         gp_beta=tracks.gp_beta,
         gp_ky_inv=tracks.gp_ky_inv,

@@ -106,7 +106,8 @@ def no_detection(
         return Mixture(weights, means, pred.covs, pred.labels)
     miss = (1.0 - p_d[moved])[:, None]
     shift = -vis.p_detect_in_fov * vis.first[moved] / miss  # E[x - m | no detection]
-    pos_cov = (pred.covs[moved, :2, :2] - vis.p_detect_in_fov * vis.second[moved]) / miss[:, :, None]
+    c = vis.p_detect_in_fov
+    pos_cov = (pred.covs[moved, :2, :2] - c * vis.second[moved]) / miss[:, :, None]
     pos_cov -= shift[:, :, None] * shift[:, None, :]
     pos_cov = symmetrize(pos_cov)
     det = pos_cov[:, 0, 0] * pos_cov[:, 1, 1] - pos_cov[:, 0, 1] ** 2

@@ -1,4 +1,4 @@
-"""The initial GM-PHD from a belief: exact / under / over / empty / explicit (Section Initialization)."""
+"""The initial GM-PHD from a belief: exact / under / over / empty / explicit components."""
 
 from __future__ import annotations
 

@@ -112,7 +112,7 @@ def aggregate(label: str, t_s: FloatArray, runs: Sequence[FloatArray]) -> Series
     return SeriesBand(label, t.copy(), mean, lo, hi)
 
 
-def plot_bands(  # noqa: PLR0917  # the study code's agreed signature
+def plot_bands(  # the study code's agreed signature
     bands: Sequence[SeriesBand],
     title: str,
     ylabel: str,

@@ -1,4 +1,4 @@
-"""The paper's simulation study: every experiment, Monte Carlo over seeds, tables beside the paper's.
+"""The paper's simulation study: every experiment, Monte Carlo over seeds, beside the paper.
 
 `run_study` runs each shipped `paper-*` scenario for seeds 1..N on worker processes (one per core
 by default), prints the paper's tables with our mean and spread over seeds next to the paper's
@@ -82,7 +82,7 @@ STONE_SOUP_OSPA_TAIL = 48.6
 class _Bar:
     """A tqdm bar on standard error with a `update_to(done, total)` callback."""
 
-    def __init__(self, bar: tqdm) -> None:  # type: ignore[type-arg]
+    def __init__(self, bar: tqdm) -> None:
         self._bar = bar
 
     def update_to(self, done: int, total: int) -> None:
@@ -174,7 +174,8 @@ def build_tables(runs: Runs) -> list[tuple[str, list[str], list[list[str]]]]:
          ["OSPA, last 20 % of steps (m)",
           _fmt(runs.values(DYNAMIC.scenario, "ospa_tail_mean")), ""]],
     ))
-    header = ["", *[f"{e.label} (ours)" for e in ESTIMATE], *[f"{e.label} (paper)" for e in ESTIMATE]]
+    header = ["", *[f"{e.label} (ours)" for e in ESTIMATE],
+              *[f"{e.label} (paper)" for e in ESTIMATE]]
     rows = []
     for key, what in (("tracks_confirmed", "tracks"), ("weight_sum", "sum of weights")):
         for planner, exps in (("lawnmower", ESTIMATE), ("largest", LARGEST)):
@@ -241,10 +242,10 @@ def _write_outputs(runs: Runs, out_dir: Path, seeds: int) -> str:
             writer.writerows(rows)
     with (out_dir / "runs.csv").open("w", newline="") as fh:
         first = next(iter(runs.by_scenario.values()))[0]["summary"]
-        writer = csv.DictWriter(fh, fieldnames=list(first))
-        writer.writeheader()
+        summaries = csv.DictWriter(fh, fieldnames=list(first))
+        summaries.writeheader()
         for results in runs.by_scenario.values():
-            writer.writerows(r["summary"] for r in results)
+            summaries.writerows(r["summary"] for r in results)
 
     def band(e: Experiment, key: str, label: str | None = None) -> Any:
         results = runs.by_scenario[e.scenario]

@@ -32,8 +32,8 @@ def training_trajectories(
         )
         path.append(truth.xy.copy())
     xy = np.stack(path, axis=1)  # (targets, steps + 1, 2)
-    noisy = xy + rng.normal(0.0, s.sensor.noise_std_m, size=xy.shape)
-    t_s = np.arange(steps + 1) * s.dt_s
+    noisy = np.asarray(xy + rng.normal(0.0, s.sensor.noise_std_m, size=xy.shape), np.float64)
+    t_s = np.arange(steps + 1, dtype=np.float64) * s.dt_s
     return [(t_s, noisy[i]) for i in range(n_targets)]
 
 

@@ -35,7 +35,7 @@ def initial_truth(
     world: World,
     rng: np.random.Generator,
 ) -> Truth:
-    """Initial targets (explicit, or `count` uniform in the world) plus later ones, not yet alive."""
+    """Initial targets (explicit, or `count` uniform in the world) and later ones, not alive."""
     if positions_xy.shape[0]:
         start = np.asarray(positions_xy, dtype=np.float64)
     else:
@@ -43,7 +43,8 @@ def initial_truth(
     later = np.array([[x, y] for _, x, y in appear], dtype=np.float64).reshape(-1, 2)
     xy = np.concatenate([start, later])
     alive = np.arange(xy.shape[0]) < start.shape[0]
-    return Truth(xy, rng.uniform(0.0, 2.0 * np.pi, size=xy.shape[0]), alive)
+    heading = np.asarray(rng.uniform(0.0, 2.0 * np.pi, size=xy.shape[0]), dtype=np.float64)
+    return Truth(xy, heading, alive)
 
 
 def advance_truth(
