@@ -197,7 +197,8 @@ def step(
 
     pruned, kept = prune(posterior, params.prune_weight)
     merged = merge(
-        pruned, params.merge_distance_sq, params.max_components, observed=detected[kept]
+        pruned, params.merge_distance_sq, params.max_components, observed=detected[kept],
+        resolution=r_cov,
     )
     reduced = merged.mixture
     # A merged component owes its weight to a detection when most of it came from detections.

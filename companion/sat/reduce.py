@@ -35,6 +35,7 @@ def merge(
     max_components: int,
     symmetric: bool = True,
     observed: NDArray[np.bool_] | None = None,
+    resolution: FloatArray | None = None,
 ) -> MergeResult:
     """Greedy merging (Vo & Ma Table 2) of components within a squared Mahalanobis distance U.
 
@@ -49,17 +50,20 @@ def merge(
     its covariance a hundredfold. `symmetric` (the default) also requires the distance under the
     leader's P_j to be within U: the two must each lie within the other's gate.
     Components labelled with different tracks merge only when both were just updated by
-    detections (`observed`): then they are one target seen twice. Otherwise they are two targets,
-    however close their uncertainties have grown while out of view.
+    detections (`observed`) and agree within U under P_i + P_j, or their positions lie within
+    one standard deviation of the measurement noise (`resolution`, R): then they are one target
+    seen twice, which the sensor cannot split. Otherwise they are two targets, however close
+    their uncertainties have grown while out of view.
     """
     n = mix.size
     if n == 0:
         return MergeResult(mix, np.zeros(0, dtype=np.int64))
     order = np.argsort(-mix.weights, kind="stable")
     seen = np.zeros(n, dtype=np.bool_) if observed is None else observed
+    resolution_inv = np.zeros((2, 2)) if resolution is None else np.linalg.inv(resolution)
     leader_of = _greedy_groups(
         mix.means, inv_stack(mix.covs), mix.covs, mix.labels, seen, order,
-        distance_sq_threshold, symmetric, observed is not None,
+        distance_sq_threshold, symmetric, observed is not None, resolution_inv,
     )
     leaders = order[leader_of[order] == order][:max_components]  # greedy (heaviest-first) order
     group_index = np.full(n, -1, dtype=np.int64)
@@ -81,6 +85,7 @@ def _greedy_groups(  # pragma: no cover - compiled; tested through merge
     threshold: float,
     symmetric: bool,
     label_rule: bool,
+    resolution_inv: FloatArray,
 ) -> IntArray:
     """The leader (heaviest member) of each component's group in Vo & Ma's greedy merging."""
     n, dim = means.shape
@@ -103,7 +108,8 @@ def _greedy_groups(  # pragma: no cover - compiled; tested through merge
                 if not (label_rule and observed[i] and observed[j]):
                     continue
                 summed[:, :] = covs[i] + covs[j]
-                if float(diff @ np.linalg.solve(summed, diff)) <= threshold:
+                unresolved = _quad(diff[:2], resolution_inv) <= 1.0
+                if unresolved or float(diff @ np.linalg.solve(summed, diff)) <= threshold:
                     leader_of[i] = j
                 continue
             if _quad(diff, inv[i]) > threshold:  # Vo & Ma: the candidate's covariance

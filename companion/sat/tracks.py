@@ -1,13 +1,15 @@
 """Track maintenance (Layer 3): track-to-estimate association after Panta et al. 2009.
 
-Every live track has a stable id. Each step, the estimates extracted from the mixture continue
-the tracks they gate with (squared Mahalanobis distance <= the merge threshold U), preferring the
-track whose id the estimate's component carries as its label; a second estimate on one track (a
-split) and an estimate that gates with no track start new tracks. A track is confirmed once
-`confirm_length` steps have supported it with a detection; out of view is not gone: a confirmed
-track whose labelled component still survives in the mixture is held by it, and a confirmed track
-ends only when nothing has supported it for `timeout_s`. A tentative track ends at its first
-unsupported step. Each track keeps its history (time, mean, covariance) in an append-only log.
+Every live track has a stable id, and the component that supports it carries that id as its
+label through prediction, update and merging. Each step, an estimate continues the track its
+component is labelled with (the GM-PHD's own association); an unlabelled estimate continues an
+unclaimed track it gates with (squared Mahalanobis distance <= the merge threshold U); a second
+estimate of one lineage (a split) and an estimate that gates with no track start new tracks. A
+track is confirmed once `confirm_length` steps have supported it with a detection; out of view is
+not gone: a confirmed track whose labelled component still survives in the mixture is held by
+it, and a confirmed track ends only when nothing has supported it for `timeout_s`. A tentative
+track ends at its first unsupported step. Each track keeps its history (time, mean, covariance)
+in an append-only log.
 """
 
 from __future__ import annotations
@@ -194,11 +196,12 @@ def _associate(
     if tracks.size == 0 or n_est == 0:
         return assigned
     gated = dist_sq <= gate_sq
-    # 1. An estimate continues the track its component is labelled with, if it gates with it
-    #    (of two estimates with one label, the closer).
+    # 1. An estimate continues the track its component is labelled with: the component descends
+    #    from the track's, which is the association the GM-PHD itself made (of two estimates
+    #    with one label, the closer).
     rows = np.minimum(np.searchsorted(tracks.ids, est_labels), tracks.size - 1)  # ids sorted
     cols = np.arange(n_est)
-    claims = (tracks.ids[rows] == est_labels) & gated[rows, cols]
+    claims = tracks.ids[rows] == est_labels
     if claims.any():
         e = cols[claims][np.argsort(dist_sq[rows[claims], cols[claims]], kind="stable")]
         first_rows, first = np.unique(rows[e], return_index=True)
