@@ -60,7 +60,7 @@ def merge(
         return MergeResult(mix, np.zeros(0, dtype=np.int64))
     order = np.argsort(-mix.weights, kind="stable")
     seen = np.zeros(n, dtype=np.bool_) if observed is None else observed
-    resolution_inv = np.zeros((2, 2)) if resolution is None else np.linalg.inv(resolution)
+    resolution_inv = np.zeros((2, 2)) if resolution is None else inv_stack(resolution[None])[0]
     leader_of = _greedy_groups(
         mix.means, inv_stack(mix.covs), mix.covs, mix.labels, seen, order,
         distance_sq_threshold, symmetric, observed is not None, resolution_inv,
