@@ -66,7 +66,7 @@ def _simulate(args: argparse.Namespace) -> int:
 def _study(args: argparse.Namespace) -> int:
     from companion.sim.study import run_study
 
-    run_study(seeds=args.seeds, out_dir=args.out, jobs=args.jobs, only=args.only)
+    run_study(seeds=args.seeds, out_dir=args.out, jobs=args.jobs, only=args.only, steps=args.steps)
     return EXIT_OK
 
 
@@ -110,6 +110,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="worker processes (default: one per core)")
     study.add_argument("--only", default=None,
                        help="run only the experiments whose scenario name contains this text")
+    study.add_argument("--steps", type=_positive_int, default=None,
+                       help="cut every run to this many steps (a quick look, not the figures)")
     study.set_defaults(run=_study)
 
     learn = sub.add_parser(

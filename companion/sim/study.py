@@ -13,7 +13,7 @@ import math
 import sys
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -116,13 +116,19 @@ def progress_bar(description: str, unit: str) -> Iterator[_Bar]:
         yield _Bar(bar)
 
 
-def run_one(scenario: str, seed: int, plot_dir: Path | None) -> dict[str, Any]:
-    """Simulate one shipped scenario with one seed; its summary and time series (a worker task)."""
+def run_one(
+    scenario: str, seed: int, plot_dir: Path | None, steps: int | None = None
+) -> dict[str, Any]:
+    """Simulate one shipped scenario with one seed; its summary and time series (a worker task).
+
+    `steps` shortens every run to that many steps (a quick look, not the study's figures).
+    """
     from companion.cli import resolve_scenario
     from companion.sim.run import simulate
     from companion.sim.scenario import load_scenario
 
-    result = simulate(load_scenario(resolve_scenario(scenario), seed=seed))
+    loaded = load_scenario(resolve_scenario(scenario), seed=seed)
+    result = simulate(loaded if steps is None else replace(loaded, steps=steps))
     if plot_dir is not None:
         from companion.sim.plots import plot_run
 
@@ -230,7 +236,7 @@ def build_tables(runs: Runs) -> list[tuple[str, list[str], list[list[str]]]]:
         weights = runs.values(e.scenario, "weight_sum")
         tracks = runs.values(e.scenario, "tracks_confirmed")
         comps = runs.values(e.scenario, "components")
-        worst = np.array([np.nanmean(r["series"]["max_track_var_m2"])
+        worst = np.array([_finite_mean(r["series"]["max_track_var_m2"])
                           for r in runs.by_scenario[e.scenario]], dtype=np.float64)
         rows.append([e.scenario, _fmt(tracks), _fmt(weights), _fmt(comps), _fmt(worst, 3)])
     tables.append(("Qualitative findings: the sum of weights and the component count over-estimate "
@@ -248,6 +254,12 @@ def build_tables(runs: Runs) -> list[tuple[str, list[str], list[list[str]]]]:
     return tables
 
 
+def _finite_mean(values: FloatArray) -> float:
+    """Mean of the finite entries; nan when there are none."""
+    finite = values[np.isfinite(values)]
+    return float(finite.mean()) if finite.size else math.nan
+
+
 def _below(values: FloatArray, limit: float) -> bool:
     return bool(np.all(np.isfinite(values)) and values.mean() < limit)
 
@@ -256,13 +268,14 @@ def _verdict(ok: bool) -> str:
     return "yes" if ok else "NO"
 
 
-def _write_outputs(runs: Runs, out_dir: Path, seeds: int) -> str:
+def _write_outputs(runs: Runs, out_dir: Path, seeds: int, steps: int | None) -> str:
     """Tables (Markdown, CSV), per-run CSV and the aggregated plots; returns the Markdown."""
     from companion.sim.plots import aggregate, plot_bands
 
     out_dir.mkdir(parents=True, exist_ok=True)
     tables = build_tables(runs)
-    markdown = f"# The paper's study, {seeds} seeds per experiment\n\n" + "\n".join(
+    shortened = "" if steps is None else f", every run cut to {steps} steps (a quick look)"
+    markdown = f"# The paper's study, {seeds} seeds per experiment{shortened}\n\n" + "\n".join(
         _table(title, header, rows) for title, header, rows in tables)
     (out_dir / "tables.md").write_text(markdown)
     for i, (title, header, rows) in enumerate(tables, start=1):
@@ -308,7 +321,9 @@ def _write_outputs(runs: Runs, out_dir: Path, seeds: int) -> str:
     return markdown
 
 
-def run_study(seeds: int, out_dir: Path, jobs: int, only: str | None = None) -> Runs:
+def run_study(
+    seeds: int, out_dir: Path, jobs: int, only: str | None = None, steps: int | None = None
+) -> Runs:
     """Run every experiment for seeds 1..seeds, print and write the tables and plots."""
     experiments = [e for e in ALL if only is None or only in e.scenario]
     if not experiments:
@@ -318,15 +333,17 @@ def run_study(seeds: int, out_dir: Path, jobs: int, only: str | None = None) -> 
     run_plots.mkdir(parents=True, exist_ok=True)
     results: dict[tuple[str, int], dict[str, Any]] = {}
     with ProcessPoolExecutor(max_workers=jobs) as pool, progress_bar("study", "run") as bar:
-        futures = {pool.submit(run_one, name, seed, run_plots if seed == 1 else None): (name, seed)
-                   for name, seed in tasks}
+        futures = {
+            pool.submit(run_one, name, seed, run_plots if seed == 1 else None, steps): (name, seed)
+            for name, seed in tasks
+        }
         for done, future in enumerate(as_completed(futures), start=1):
             results[futures[future]] = future.result()
             bar.update_to(done, len(tasks))
     runs = Runs({e.scenario: [results[(e.scenario, s)] for s in range(1, seeds + 1)]
                  for e in experiments})
     if len(experiments) == len(ALL):
-        print(_write_outputs(runs, out_dir, seeds))
+        print(_write_outputs(runs, out_dir, seeds, steps))
         print(f"wrote {out_dir / 'tables.md'}, CSV tables and plots under {out_dir}",
               file=sys.stderr)
     else:
