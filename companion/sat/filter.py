@@ -15,8 +15,8 @@ from companion.errors import InputError
 from companion.sat.birth import BirthWeight, birth, birth_weights
 from companion.sat.extract import extract
 from companion.sat.fov import Region
-from companion.sat.gp import GpParams, GpPredictor, predict_fit
-from companion.sat.mixture import NO_LABEL, Mixture
+from companion.sat.gp import GpParams, GpPredictor
+from companion.sat.mixture import Mixture
 from companion.sat.predict import LinearModel, apply_gp, predict_linear, transition
 from companion.sat.reduce import merge, prune
 from companion.sat.tracks import TrackParams, Tracks, maintain
@@ -126,21 +126,10 @@ def _predict(state: SatState, dt_s: float, params: SatParams, gp: GpPredictor) -
     tracks = state.tracks
     if not params.use_gp or tracks.size == 0 or prior.size == 0:
         return predicted
-    comp = np.flatnonzero(prior.labels != NO_LABEL)
-    rows = np.minimum(np.searchsorted(tracks.ids, prior.labels[comp]), tracks.size - 1)
-    usable = (
-        (tracks.ids[rows] == prior.labels[comp])  # track ids are kept sorted
-        & tracks.confirmed[rows]
-        & (tracks.win_count[rows] >= 2)
+    return apply_gp(
+        predicted, prior, tracks.ids, tracks.confirmed, tracks.gp_fit(), params.gp,
+        state.t_s, state.t_s + dt_s,
     )
-    comp, rows = comp[usable], rows[usable]
-    if comp.size == 0:
-        return predicted
-    mean, var, velocity = predict_fit(
-        params.gp, tracks.gp_fit(), np.array([state.t_s + dt_s, state.t_s]), rows
-    )
-    growth = np.maximum(var[0] - var[1], 0.0)
-    return apply_gp(predicted, prior, comp, mean[0], growth, velocity[0])
 
 
 def step(
@@ -215,7 +204,10 @@ def step(
     tracks, labelled = maintain(
         state.tracks, reduced, est_rows, detected_reduced, scan.t_s, params.tracks
     )
-    fresh = np.flatnonzero((tracks.win_count > 0) & (tracks.win_t_s[:, -1] == scan.t_s))
+    # Only confirmed tracks are predicted by their GP: refit the windows that just changed.
+    fresh = np.flatnonzero(
+        tracks.confirmed & (tracks.win_count > 0) & (tracks.win_t_s[:, -1] == scan.t_s)
+    )
     tracks = tracks.refit_gp(fresh, gp)
     report = StepReport(int(est_index.size), dropped, region is None)
     return SatState(scan.t_s, labelled, tracks), report

@@ -493,10 +493,18 @@ def _polygon(
 
 
 def _raw_moments(
-    means_xy: FloatArray, covs_xy: FloatArray, region: Region, order: int
+    means_xy: FloatArray, covs_xy: FloatArray, region: Region, order: int, check: bool = True
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """Validated means, p(F) (n,), E[(x - m) 1_F] (n, 2), E[(x - m)(x - m)^T 1_F] (n, 2, 2)."""
-    means, cov = _gaussians(means_xy, covs_xy)
+    """Validated means, p(F) (n,), E[(x - m) 1_F] (n, 2), E[(x - m)(x - m)^T 1_F] (n, 2, 2).
+
+    check=False trusts the caller's arrays (float64, symmetric positive definite): the filter
+    hands in its own components, which it keeps valid.
+    """
+    if check:
+        means, cov = _gaussians(means_xy, covs_xy)
+    else:
+        means = means_xy
+        cov = (covs_xy[:, 0, 0], covs_xy[:, 0, 1], covs_xy[:, 1, 1])
     if not isinstance(region, Disk | ConvexPolygon):
         raise InputError(f"region must be a Disk or a ConvexPolygon, got {type(region)}")
     if means.shape[0] == 0:
@@ -508,12 +516,14 @@ def _raw_moments(
     return means, mass, moment, second
 
 
-def prob_in_region(means_xy: FloatArray, covs_xy: FloatArray, region: Region) -> FloatArray:
+def prob_in_region(
+    means_xy: FloatArray, covs_xy: FloatArray, region: Region, check: bool = True
+) -> FloatArray:
     """p(F) (n,): mass of each N(means_xy[i], covs_xy[i]) (metres) in region, to 1e-6 absolute.
 
     Eq. prob_of_detection_given_f with the full covariance, correlation included; n may be 0.
     """
-    return _raw_moments(means_xy, covs_xy, region, order=0)[1]
+    return _raw_moments(means_xy, covs_xy, region, 0, check)[1]
 
 
 def region_moments(
@@ -532,12 +542,12 @@ def region_moments(
 
 
 def truncation_moments(
-    means_xy: FloatArray, covs_xy: FloatArray, region: Region
+    means_xy: FloatArray, covs_xy: FloatArray, region: Region, check: bool = True
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """p(F) (n,), E[(x - m) 1_F] (n, 2) and E[(x - m)(x - m)^T 1_F] (n, 2, 2) per Gaussian.
 
     The raw moments of each component's mass inside the region, about its own mean: what the
     no-detection update needs to moment-match (1 - c 1_F(x)) N(x; m, P).
     """
-    _, mass, moment, second = _raw_moments(means_xy, covs_xy, region, order=2)
+    _, mass, moment, second = _raw_moments(means_xy, covs_xy, region, 2, check)
     return mass, moment, second

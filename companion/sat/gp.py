@@ -254,7 +254,7 @@ def predict_fit(
     mean = np.empty((times.size, picked.size, dim))
     var = np.empty((times.size, picked.size))
     velocity = np.empty((times.size, picked.size, dim))
-    _predict_kernel(
+    gp_predict_rows(
         fit.t_s, fit.count, fit.mu, fit.beta, fit.ky_inv, picked, times,
         params.sigma_f_m**2, params.lengthscale_s, mean, var, velocity,
     )
@@ -264,7 +264,7 @@ def predict_fit(
 
 
 @njit(cache=True, nogil=True)
-def _predict_kernel(  # pragma: no cover - compiled; tested through predict_fit
+def gp_predict_rows(  # pragma: no cover - compiled; tested through predict_fit
     t_s: FloatArray,
     count: IntArray,
     mu: FloatArray,

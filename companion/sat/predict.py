@@ -5,8 +5,10 @@ from __future__ import annotations
 from enum import Enum
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
+from companion.sat.gp import GpFit, GpParams, gp_predict_rows
 from companion.sat.mixture import Mixture
 
 FloatArray = NDArray[np.float64]
@@ -56,27 +58,76 @@ def predict_linear(mix: Mixture, f: FloatArray, q: FloatArray, p_survive: float)
 def apply_gp(
     predicted: Mixture,
     prior: Mixture,
-    index: NDArray[np.int64],
-    gp_mean_xy: FloatArray,
-    gp_var_m2: FloatArray,
-    gp_velocity_xy: FloatArray,
+    track_ids: NDArray[np.int64],
+    confirmed: NDArray[np.bool_],
+    fit: GpFit,
+    params: GpParams,
+    t_before_s: float,
+    t_now_s: float,
 ) -> Mixture:
-    """Predict components `index` by their tracks' GP regression instead of the linear model.
+    """Predict the components of confirmed tracks by their GP regression, not the linear model.
 
-    The GP gives the new position means and the growth of the prior position covariance over
-    the step (in place of the linear model's Q). In a constant-velocity state the derivative of
-    the GP mean becomes the velocity mean and the velocity block keeps its linear prediction.
+    A component labelled with a confirmed track whose window holds at least two detections
+    takes the GP mean at t_now_s (Eq. gp_prediction), and its prior position covariance grows
+    by the increase of the GP's predictive variance from t_before_s to t_now_s, in place of the
+    linear model's Q. In a constant-velocity state the derivative of the GP mean becomes the
+    velocity mean and the velocity block keeps its linear prediction. `track_ids` are sorted.
     """
-    if index.size == 0:
+    if predicted.size == 0 or track_ids.size == 0:
         return predicted
     means = predicted.means.copy()
     covs = predicted.covs.copy()
-    means[index, :2] = gp_mean_xy
-    covs[index, :2, :2] = prior.covs[index, :2, :2]
-    covs[index, 0, 0] += gp_var_m2
-    covs[index, 1, 1] += gp_var_m2
-    if predicted.dim == 4:
-        means[index, 2:] = gp_velocity_xy
-        covs[index, :2, 2:] = 0.0
-        covs[index, 2:, :2] = 0.0
+    _apply_gp_kernel(
+        prior.labels, prior.covs, track_ids, confirmed, fit.t_s, fit.count, fit.mu, fit.beta,
+        fit.ky_inv, params.sigma_f_m**2, params.lengthscale_s, t_before_s, t_now_s, means, covs,
+    )
     return Mixture(predicted.weights, means, covs, predicted.labels)
+
+
+@njit(cache=True, nogil=True)
+def _apply_gp_kernel(  # pragma: no cover - compiled; tested through apply_gp
+    labels: NDArray[np.int64],
+    prior_covs: FloatArray,
+    track_ids: NDArray[np.int64],
+    confirmed: NDArray[np.bool_],
+    t_s: FloatArray,
+    count: NDArray[np.int64],
+    mu: FloatArray,
+    beta: FloatArray,
+    ky_inv: FloatArray,
+    sf2: float,
+    lam: float,
+    t_before: float,
+    t_now: float,
+    means: FloatArray,
+    covs: FloatArray,
+) -> None:
+    """Overwrite the predicted means and covariances of the components of confirmed tracks."""
+    times = np.array([t_now, t_before])
+    mean = np.empty((2, 1, 2))
+    var = np.empty((2, 1))
+    velocity = np.empty((2, 1, 2))
+    row = np.empty(1, dtype=np.int64)
+    dim = means.shape[1]
+    for j in range(labels.shape[0]):
+        if labels[j] < 0:
+            continue
+        r = np.searchsorted(track_ids, labels[j])
+        if r >= track_ids.shape[0] or track_ids[r] != labels[j]:
+            continue
+        if not confirmed[r] or count[r] < 2:
+            continue
+        row[0] = r
+        gp_predict_rows(
+            t_s, count, mu, beta, ky_inv, row, times, sf2, lam, mean, var, velocity
+        )
+        growth = max(var[0, 0] - var[1, 0], 0.0)
+        means[j, 0], means[j, 1] = mean[0, 0, 0], mean[0, 0, 1]
+        covs[j, 0, 0] = prior_covs[j, 0, 0] + growth
+        covs[j, 1, 1] = prior_covs[j, 1, 1] + growth
+        covs[j, 0, 1], covs[j, 1, 0] = prior_covs[j, 0, 1], prior_covs[j, 1, 0]
+        if dim == 4:
+            means[j, 2], means[j, 3] = velocity[0, 0, 0], velocity[0, 0, 1]
+            for a in range(2):
+                for b in range(2, 4):
+                    covs[j, a, b] = covs[j, b, a] = 0.0

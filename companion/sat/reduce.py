@@ -62,8 +62,8 @@ def merge(
     seen = np.zeros(n, dtype=np.bool_) if observed is None else observed
     resolution_inv = np.zeros((2, 2)) if resolution is None else inv_stack(resolution[None])[0]
     leader_of = _greedy_groups(
-        mix.means, inv_stack(mix.covs), mix.covs, mix.labels, seen, order,
-        distance_sq_threshold, symmetric, observed is not None, resolution_inv,
+        mix.means, mix.covs, mix.labels, seen, order, distance_sq_threshold, symmetric,
+        observed is not None, resolution_inv,
     )
     leaders = order[leader_of[order] == order][:max_components]  # greedy (heaviest-first) order
     group_index = np.full(n, -1, dtype=np.int64)
@@ -77,7 +77,6 @@ def merge(
 @njit(cache=True, nogil=True)
 def _greedy_groups(  # pragma: no cover - compiled; tested through merge
     means: FloatArray,
-    inv: FloatArray,
     covs: FloatArray,
     labels: IntArray,
     observed: NDArray[np.bool_],
@@ -92,6 +91,14 @@ def _greedy_groups(  # pragma: no cover - compiled; tested through merge
     leader_of = np.full(n, -1, dtype=np.int64)
     diff = np.empty(dim)
     summed = np.empty((dim, dim))
+    inv = np.empty_like(covs)
+    for i in range(n):
+        if dim == 2:
+            det = covs[i, 0, 0] * covs[i, 1, 1] - covs[i, 0, 1] * covs[i, 1, 0]
+            inv[i, 0, 0], inv[i, 1, 1] = covs[i, 1, 1] / det, covs[i, 0, 0] / det
+            inv[i, 0, 1], inv[i, 1, 0] = -covs[i, 0, 1] / det, -covs[i, 1, 0] / det
+        else:
+            inv[i] = np.linalg.inv(covs[i])
     for j in order:
         if leader_of[j] >= 0:
             continue

@@ -188,37 +188,39 @@ def gate_distances(tracks: Tracks, means: FloatArray, covs: FloatArray) -> Float
 
 
 def _associate(
-    tracks: Tracks, est_labels: IntArray, dist_sq: FloatArray, gate_sq: float
+    tracks: Tracks, est_labels: IntArray, est_means: FloatArray, est_covs: FloatArray,
+    gate_sq: float,
 ) -> IntArray:
     """For each estimate, the row of the track it continues, or -1 for a new track."""
     n_est = est_labels.shape[0]
     assigned = np.full(n_est, -1, dtype=np.int64)
     if tracks.size == 0 or n_est == 0:
         return assigned
-    gated = dist_sq <= gate_sq
     # 1. An estimate continues the track its component is labelled with: the component descends
     #    from the track's, which is the association the GM-PHD itself made (of two estimates
     #    with one label, the closer).
     rows = np.minimum(np.searchsorted(tracks.ids, est_labels), tracks.size - 1)  # ids sorted
-    cols = np.arange(n_est)
-    claims = tracks.ids[rows] == est_labels
-    if claims.any():
-        e = cols[claims][np.argsort(dist_sq[rows[claims], cols[claims]], kind="stable")]
-        first_rows, first = np.unique(rows[e], return_index=True)
-        assigned[e[first]] = first_rows
+    claims = np.flatnonzero(tracks.ids[rows] == est_labels)
+    if claims.size:
+        first_rows, first = np.unique(rows[claims], return_index=True)
+        if first_rows.size < claims.size:  # one lineage, two estimates: the closer continues it
+            dist = gate_distances(tracks, est_means[claims], est_covs[claims])
+            claims = claims[np.argsort(dist[rows[claims], np.arange(claims.size)], kind="stable")]
+            first_rows, first = np.unique(rows[claims], return_index=True)
+        assigned[claims[first]] = first_rows
     # 2. The rest gate with the unclaimed tracks, nearest pairs first.
     free = np.flatnonzero(assigned < 0)
-    if free.size:
-        claimed = np.zeros(tracks.size, dtype=bool)
-        claimed[assigned[assigned >= 0]] = True
-        t_rows, t_cols = np.nonzero(gated[:, free] & ~claimed[:, None])
-        if t_rows.size:
-            e_cols = free[t_cols]
-            for k in np.argsort(dist_sq[t_rows, e_cols], kind="stable"):
-                row, est = t_rows[k], e_cols[k]
-                if not claimed[row] and assigned[est] < 0:
-                    claimed[row] = True
-                    assigned[est] = row
+    if free.size == 0:
+        return assigned
+    claimed = np.zeros(tracks.size, dtype=bool)
+    claimed[assigned[assigned >= 0]] = True
+    dist = gate_distances(tracks, est_means[free], est_covs[free])
+    t_rows, t_cols = np.nonzero((dist <= gate_sq) & ~claimed[:, None])
+    for k in np.argsort(dist[t_rows, t_cols], kind="stable"):
+        row, est = t_rows[k], free[t_cols[k]]
+        if not claimed[row] and assigned[est] < 0:
+            claimed[row] = True
+            assigned[est] = row
     return assigned
 
 
@@ -238,8 +240,9 @@ def maintain(
     and the second starts a new track: the split. `detected[i]` says whether component i owes
     its weight to a detection this step.
     """
-    dist_sq = gate_distances(tracks, mix.means[est_rows], mix.covs[est_rows])
-    assigned = _associate(tracks, mix.labels[est_rows], dist_sq, params.gate_sq)
+    assigned = _associate(
+        tracks, mix.labels[est_rows], mix.means[est_rows], mix.covs[est_rows], params.gate_sq
+    )
     has_estimate = assigned >= 0
     supported_by = np.full(tracks.size, -1, dtype=np.int64)  # mixture row supporting each track
     supported_by[assigned[has_estimate]] = est_rows[has_estimate]

@@ -2,19 +2,21 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from enum import Enum
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from companion.sat.fov import Region, prob_in_region, truncation_moments
-from companion.sat.linalg import inv_det_2x2
-from companion.sat.mixture import Mixture, symmetrize
+from companion.sat.mixture import Mixture
 
 FloatArray = NDArray[np.float64]
 
-_TWO_PI = 2.0 * np.pi
+_TWO_PI = 2.0 * math.pi
+_TINY = float(np.finfo(np.float64).tiny)
 
 
 class PushMode(Enum):
@@ -60,9 +62,9 @@ def visibility(
     """p_D = p(D|F) p(F) per component (Eq. prob_of_detection, Eq. prob_of_detection_given_f)."""
     pos_means, pos_covs = pred.means[:, :2], pred.covs[:, :2, :2]
     if with_moments:
-        p_in_fov, first, second = truncation_moments(pos_means, pos_covs, region)
+        p_in_fov, first, second = truncation_moments(pos_means, pos_covs, region, check=False)
         return Visibility(p_detect_in_fov * p_in_fov, p_detect_in_fov, first, second)
-    p_in_fov = prob_in_region(pos_means, pos_covs, region)
+    p_in_fov = prob_in_region(pos_means, pos_covs, region, check=False)
     return Visibility(p_detect_in_fov * p_in_fov, p_detect_in_fov)
 
 
@@ -98,25 +100,40 @@ def no_detection(
         return Mixture(weights, means, pred.covs, pred.labels)
     if vis.first is None or vis.second is None:
         raise ValueError("the moment push rule needs visibility(..., with_moments=True)")
-    movable = (p_d > 0.0) & (1.0 - p_d > _MOMENT_MIN_MISS)
-    if detected is not None:
-        movable &= ~detected
-    moved = np.flatnonzero(movable)
-    if moved.size == 0:
-        return Mixture(weights, means, pred.covs, pred.labels)
-    miss = (1.0 - p_d[moved])[:, None]
-    shift = -vis.p_detect_in_fov * vis.first[moved] / miss  # E[x - m | no detection]
-    c = vis.p_detect_in_fov
-    pos_cov = (pred.covs[moved, :2, :2] - c * vis.second[moved]) / miss[:, :, None]
-    pos_cov -= shift[:, :, None] * shift[:, None, :]
-    pos_cov = symmetrize(pos_cov)
-    det = pos_cov[:, 0, 0] * pos_cov[:, 1, 1] - pos_cov[:, 0, 1] ** 2
-    valid = (pos_cov[:, 0, 0] > 0.0) & (det > 0.0)  # round-off can break it when p_D ~ 1
-    moved, shift, pos_cov = moved[valid], shift[valid], pos_cov[valid]
-    means[moved, :2] += shift
+    claimed = np.zeros(pred.size, dtype=np.bool_) if detected is None else detected
     covs = pred.covs.copy()
-    covs[moved, :2, :2] = pos_cov
+    _moment_kernel(p_d, vis.p_detect_in_fov, vis.first, vis.second, claimed, means, covs)
     return Mixture(weights, means, covs, pred.labels)
+
+
+@njit(cache=True, nogil=True)
+def _moment_kernel(  # pragma: no cover - compiled; tested through no_detection
+    p_d: FloatArray,
+    c: float,
+    first: FloatArray,
+    second: FloatArray,
+    claimed: NDArray[np.bool_],
+    means: FloatArray,
+    covs: FloatArray,
+) -> None:
+    """Replace each unclaimed component's position moments by those of its no-detection
+    posterior (see PushRule); keep them where 1 - p_D is tiny or round-off breaks P."""
+    for j in range(p_d.shape[0]):
+        miss = 1.0 - p_d[j]
+        if claimed[j] or p_d[j] <= 0.0 or miss <= _MOMENT_MIN_MISS:
+            continue
+        s0 = -c * first[j, 0] / miss  # E[x - m | no detection]
+        s1 = -c * first[j, 1] / miss
+        p00 = (covs[j, 0, 0] - c * second[j, 0, 0]) / miss - s0 * s0
+        p11 = (covs[j, 1, 1] - c * second[j, 1, 1]) / miss - s1 * s1
+        p01 = 0.5 * (covs[j, 0, 1] + covs[j, 1, 0] - c * (second[j, 0, 1] + second[j, 1, 0]))
+        p01 = p01 / miss - s0 * s1
+        if p00 <= 0.0 or p00 * p11 - p01 * p01 <= 0.0:  # round-off when p_D ~ 1
+            continue
+        means[j, 0] += s0
+        means[j, 1] += s1
+        covs[j, 0, 0], covs[j, 1, 1] = p00, p11
+        covs[j, 0, 1] = covs[j, 1, 0] = p01
 
 
 @dataclass(frozen=True, slots=True)
@@ -147,22 +164,68 @@ def detection(
     d = pred.dim
     if n == 0 or m == 0:
         return DetectionUpdate(Mixture.empty(d), np.zeros(m))
-    s_cov = pred.covs[:, :2, :2] + r_cov  # S = H P H^T + R
-    s_inv, s_det = inv_det_2x2(s_cov)
-    gain = pred.covs[:, :, :2] @ s_inv  # K = P H^T S^-1
-    covs_upd = symmetrize(pred.covs - gain @ pred.covs[:, :2, :])  # P = (I - K H) P
-    innov = measurements_xy[None, :, :] - pred.means[:, None, :2]  # (n, m, 2)
-    maha_sq = np.einsum("nmi,nij,nmj->nm", innov, s_inv, innov)
-    q = np.exp(-0.5 * maha_sq) / (_TWO_PI * np.sqrt(s_det))[:, None]  # N(z; H m, S)
-    numer = (p_d * pred.weights)[:, None] * q
-    explained = numer.sum(axis=0)
-    denom = np.maximum(clutter_intensity + birth_intensity + explained, np.finfo(float).tiny)
-    weights = (numer / denom).T.reshape(-1)
-    means = (pred.means[:, None, :] + np.einsum("nij,nmj->nmi", gain, innov)).transpose(1, 0, 2)
+    weights = np.empty((m, n))
+    means = np.empty((m, n, d))
+    covs_upd = np.empty((n, d, d))
+    explained = np.zeros(m)
+    _detection_kernel(
+        pred.weights, pred.means, pred.covs, p_d, measurements_xy, r_cov,
+        clutter_intensity + birth_intensity, weights, means, covs_upd, explained,
+    )
     children = Mixture(
-        weights,
+        weights.reshape(-1),
         means.reshape(m * n, d),
         np.broadcast_to(covs_upd, (m, n, d, d)).reshape(m * n, d, d),
         np.tile(pred.labels, m),
     )
     return DetectionUpdate(children, explained)
+
+
+@njit(cache=True, nogil=True)
+def _detection_kernel(  # pragma: no cover - compiled; tested through detection
+    w: FloatArray,
+    mean: FloatArray,
+    cov: FloatArray,
+    p_d: FloatArray,
+    z: FloatArray,
+    r: FloatArray,
+    background: float,
+    w_out: FloatArray,
+    m_out: FloatArray,
+    p_out: FloatArray,
+    explained: FloatArray,
+) -> None:
+    """Fill the detection children (measurement-major) and each measurement's sum_l p_D w q."""
+    n, d = mean.shape
+    gain = np.empty((n, d, 2))
+    s_inv = np.empty((n, 2, 2))
+    norm = np.empty(n)
+    for j in range(n):
+        s00, s01 = cov[j, 0, 0] + r[0, 0], cov[j, 0, 1] + r[0, 1]  # S = H P H^T + R
+        s10, s11 = cov[j, 1, 0] + r[1, 0], cov[j, 1, 1] + r[1, 1]
+        det = s00 * s11 - s01 * s10
+        s_inv[j, 0, 0], s_inv[j, 0, 1] = s11 / det, -s01 / det
+        s_inv[j, 1, 0], s_inv[j, 1, 1] = -s10 / det, s00 / det
+        norm[j] = 1.0 / (_TWO_PI * math.sqrt(det))
+        for a in range(d):  # K = P H^T S^-1
+            gain[j, a, 0] = cov[j, a, 0] * s_inv[j, 0, 0] + cov[j, a, 1] * s_inv[j, 1, 0]
+            gain[j, a, 1] = cov[j, a, 0] * s_inv[j, 0, 1] + cov[j, a, 1] * s_inv[j, 1, 1]
+        for a in range(d):  # P = (I - K H) P, symmetrised
+            for b in range(a, d):
+                pab = cov[j, a, b] - gain[j, a, 0] * cov[j, 0, b] - gain[j, a, 1] * cov[j, 1, b]
+                pba = cov[j, b, a] - gain[j, b, 0] * cov[j, 0, a] - gain[j, b, 1] * cov[j, 1, a]
+                p_out[j, a, b] = p_out[j, b, a] = 0.5 * (pab + pba)
+    for k in range(z.shape[0]):
+        for j in range(n):
+            v0, v1 = z[k, 0] - mean[j, 0], z[k, 1] - mean[j, 1]  # innovation z - H m
+            maha = v0 * (s_inv[j, 0, 0] * v0 + s_inv[j, 0, 1] * v1) + v1 * (
+                s_inv[j, 1, 0] * v0 + s_inv[j, 1, 1] * v1
+            )
+            numer = p_d[j] * w[j] * norm[j] * math.exp(-0.5 * maha)  # p_D w N(z; H m, S)
+            w_out[k, j] = numer
+            explained[k] += numer
+            for a in range(d):  # m = m + K (z - H m)
+                m_out[k, j, a] = mean[j, a] + gain[j, a, 0] * v0 + gain[j, a, 1] * v1
+        denom = max(background + explained[k], _TINY)
+        for j in range(n):
+            w_out[k, j] /= denom
