@@ -5,9 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from companion.sat.fov import Disk
+from companion.sat.fov import ConvexPolygon, Disk
 from companion.sat.mixture import make_mixture
-from companion.sat.update import PushRule, Visibility, detection, no_detection, visibility
+from companion.sat.update import (
+    PushMode,
+    PushRule,
+    Visibility,
+    detection,
+    no_detection,
+    visibility,
+)
 
 EVERYWHERE = Disk(np.zeros(2), 1e6)
 
@@ -102,3 +109,32 @@ def test_push_rule_moves_band_components_away_from_the_sensor() -> None:
     np.testing.assert_allclose(pushed.weights, 1.0 - p_d)
     unpushed = no_detection(mix, Visibility(p_d, 0.9), sensor, None)
     assert unpushed.means.tolist() == mix.means.tolist()
+
+
+HALF_PLANE = ConvexPolygon(np.array([[-1e3, -1e3], [0.0, -1e3], [0.0, 1e3], [-1e3, 1e3]]))
+
+
+def test_moment_rule_is_the_truncated_normal_at_a_straight_edge() -> None:
+    # The FOV covers x <= 0 and detects for sure: half of N(0, I) is seen empty; what is left is
+    # the half-normal on x > 0, mean sqrt(2/pi), variance 1 - 2/pi.
+    mix = make_mixture([1.0], [[0.0, 0.0]], [np.eye(2)])
+    vis = visibility(mix, HALF_PLANE, 1.0, with_moments=True)
+    assert vis.p_d == pytest.approx([0.5], abs=1e-12)
+    missed = no_detection(mix, vis, np.array([-10.0, 0.0]), PushRule(mode=PushMode.MOMENT))
+    assert missed.weights == pytest.approx([0.5])
+    np.testing.assert_allclose(missed.means, [[np.sqrt(2.0 / np.pi), 0.0]], atol=1e-9)
+    np.testing.assert_allclose(missed.covs, [np.diag([1.0 - 2.0 / np.pi, 1.0])], atol=1e-9)
+
+
+def test_moment_rule_leaves_claimed_components_and_keeps_a_velocity_state_valid() -> None:
+    covs = np.eye(4)
+    covs[0, 2] = covs[2, 0] = covs[1, 3] = covs[3, 1] = 0.5  # position-velocity correlation
+    mix = make_mixture([1.0, 1.0], [[0.0, 0.0, 1.0, 0.0]] * 2, [covs] * 2)
+    vis = visibility(mix, HALF_PLANE, 0.98, with_moments=True)
+    rule = PushRule(mode=PushMode.MOMENT)
+    missed = no_detection(mix, vis, np.array([-10.0, 0.0]), rule, np.array([False, True]))
+    assert missed.means[0, 0] > 0.5  # pushed out of the FOV
+    np.testing.assert_array_equal(missed.means[1], mix.means[1])  # claimed: left in place
+    np.testing.assert_array_equal(missed.means[0, 2:], [1.0, 0.0])  # velocity kept
+    np.testing.assert_array_equal(missed.covs[0, :2, 2:], 0.0)
+    assert np.all(np.linalg.eigvalsh(missed.covs) > 0.0)

@@ -7,7 +7,7 @@ from enum import Enum
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.sat.mixture import NO_LABEL, Mixture
+from companion.sat.mixture import NO_LABEL, Mixture, lift_positions
 
 FloatArray = NDArray[np.float64]
 
@@ -42,11 +42,5 @@ def birth(
     state_dim: int,
 ) -> Mixture:
     """Components with mean z, covariance R (and a zero-mean velocity prior in a 4-D state)."""
-    m = measurements_xy.shape[0]
-    means = np.zeros((m, state_dim))
-    means[:, :2] = measurements_xy
-    covs = np.zeros((m, state_dim, state_dim))
-    covs[:, :2, :2] = r_cov
-    if state_dim == 4:
-        covs[:, 2, 2] = covs[:, 3, 3] = velocity_var_m2_s2
-    return Mixture(weights.copy(), means, covs, np.full(m, NO_LABEL, dtype=np.int64))
+    means, covs = lift_positions(measurements_xy, r_cov, state_dim, velocity_var_m2_s2)
+    return Mixture(weights.copy(), means, covs, np.full(len(means), NO_LABEL, dtype=np.int64))

@@ -1,7 +1,7 @@
 """One step of GM-PHD search and tracking (the paper's flowchart), as a pure function of its inputs.
 
 predict (linear / GP) -> update with the limited FOV (no detection, push rule, detections) ->
-prune and merge -> measurement-driven birth -> state extraction -> track maintenance.
+measurement-driven birth -> prune and merge -> state extraction -> track maintenance.
 """
 
 from __future__ import annotations
@@ -112,7 +112,7 @@ def _checked_r(r: object) -> FloatArray:
     return r_cov
 
 
-def _predict(state: SatState, dt_s: float, params: SatParams, gp: GpPredictor) -> Mixture:
+def _predict(state: SatState, dt_s: float, params: SatParams) -> Mixture:
     """Linear prediction for every component, GP prediction for those of confirmed tracks.
 
     A confirmed track's component takes the GP mean at the new time (Eq. gp_prediction) over the
@@ -152,7 +152,7 @@ def step(
         z = np.zeros((0, 2))
     r_cov = _checked_r(scan.r_cov)
 
-    predicted = _predict(state, scan.t_s - state.t_s, params, gp)
+    predicted = _predict(state, scan.t_s - state.t_s, params)
     dim = predicted.dim
     if region is None:
         posterior = predicted
@@ -167,10 +167,8 @@ def step(
         vis = visibility(predicted, region, params.p_detect, moments)
         found = detection(predicted, vis.p_d, z, r_cov, clutter, newborn)
         # A component that a measurement claims is in view: its missed part is not pushed out.
-        claimed = (
-            found.children.weights.reshape(z.shape[0], -1).sum(axis=0) > 0.5 * predicted.weights
-            if z.shape[0] and predicted.size else np.zeros(predicted.size, dtype=bool)
-        )
+        from_detections = found.children.weights.reshape(z.shape[0], predicted.size).sum(axis=0)
+        claimed = from_detections > 0.5 * predicted.weights
         missed = no_detection(predicted, vis, sensor_xy, params.push, claimed)
         posterior = Mixture.concat([missed, found.children])
         detected = np.arange(posterior.size) >= missed.size

@@ -25,9 +25,3 @@ def inv_stack(a: FloatArray) -> FloatArray:
     if a.shape[-1] == 2:
         return inv_det_2x2(a)[0]
     return np.asarray(np.linalg.inv(a), dtype=np.float64)
-
-
-def quad_form(diff: FloatArray, inv: FloatArray) -> FloatArray:
-    """diff^T inv diff over matching leading axes: diff (..., d), inv (..., d, d) -> (...)."""
-    result: FloatArray = np.einsum("...i,...ij,...j->...", diff, inv, diff)
-    return result

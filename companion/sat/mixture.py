@@ -110,6 +110,16 @@ def check_covariances(covs: FloatArray, what: str) -> None:
         raise InputError(f"{what}: must be positive definite")
 
 
-def symmetrize(covs: FloatArray) -> FloatArray:
-    """(P + P^T) / 2, to keep round-off from breaking symmetry."""
-    return 0.5 * (covs + np.swapaxes(covs, -1, -2))
+def lift_positions(
+    means_xy: FloatArray, covs_xy: FloatArray, state_dim: int, velocity_var_m2_s2: float
+) -> tuple[FloatArray, FloatArray]:
+    """Means (n, d) and covariances (n, d, d) for components known by position only: a 4-D
+    (constant-velocity) state gets zero mean velocity with variance velocity_var_m2_s2."""
+    n = means_xy.shape[0]
+    means = np.zeros((n, state_dim))
+    means[:, :2] = means_xy
+    covs = np.zeros((n, state_dim, state_dim))
+    covs[:, :2, :2] = covs_xy
+    if state_dim == 4:
+        covs[:, 2, 2] = covs[:, 3, 3] = velocity_var_m2_s2
+    return means, covs

@@ -14,7 +14,7 @@ in an append-only log.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -155,24 +155,11 @@ class Tracks:
 
     def take(self, keep: BoolArray | IntArray) -> Tracks:
         """The tracks selected by a mask or an index, sharing the log."""
-        return Tracks(
-            self.ids[keep],
-            self.hits[keep],
-            self.life[keep],
-            self.confirmed[keep],
-            self.born_t_s[keep],
-            self.last_t_s[keep],
-            self.means[keep],
-            self.covs[keep],
-            self.win_t_s[keep],
-            self.win_xy[keep],
-            self.win_count[keep],
-            self.gp_mu[keep],
-            self.gp_beta[keep],
-            self.gp_ky_inv[keep],
-            self.log,
-            self.next_id,
-        )
+        return replace(self, **{name: getattr(self, name)[keep] for name in _ROW_FIELDS})
+
+
+_ROW_FIELDS = tuple(f.name for f in fields(Tracks) if f.name not in ("log", "next_id"))
+"""The fields of Tracks that hold one row per track."""
 
 
 def gate_distances(tracks: Tracks, means: FloatArray, covs: FloatArray) -> FloatArray:
@@ -364,21 +351,5 @@ def _new_tracks(
 def _concat(old: Tracks, new: Tracks) -> Tracks:
     """Old tracks followed by new ones; the new ones' first rows go to the log."""
     log = old.log.append(new.ids, float(new.born_t_s[0]), new.means, new.covs)
-    return Tracks(
-        ids=np.concatenate([old.ids, new.ids]),
-        hits=np.concatenate([old.hits, new.hits]),
-        life=np.concatenate([old.life, new.life]),
-        confirmed=np.concatenate([old.confirmed, new.confirmed]),
-        born_t_s=np.concatenate([old.born_t_s, new.born_t_s]),
-        last_t_s=np.concatenate([old.last_t_s, new.last_t_s]),
-        means=np.concatenate([old.means, new.means]),
-        covs=np.concatenate([old.covs, new.covs]),
-        win_t_s=np.concatenate([old.win_t_s, new.win_t_s]),
-        win_xy=np.concatenate([old.win_xy, new.win_xy]),
-        win_count=np.concatenate([old.win_count, new.win_count]),
-        gp_mu=np.concatenate([old.gp_mu, new.gp_mu]),
-        gp_beta=np.concatenate([old.gp_beta, new.gp_beta]),
-        gp_ky_inv=np.concatenate([old.gp_ky_inv, new.gp_ky_inv]),
-        log=log,
-        next_id=new.next_id,
-    )
+    rows = {name: np.concatenate([getattr(old, name), getattr(new, name)]) for name in _ROW_FIELDS}
+    return Tracks(**rows, log=log, next_id=new.next_id)

@@ -130,6 +130,12 @@ def _moment_kernel(  # pragma: no cover - compiled; tested through no_detection
         p01 = p01 / miss - s0 * s1
         if p00 <= 0.0 or p00 * p11 - p01 * p01 <= 0.0:  # round-off when p_D ~ 1
             continue
+        if means.shape[1] == 4:
+            # A (x, y, vx, vy) state keeps its velocity: carried through the position-velocity
+            # correlation, the outward shift would become an outward velocity and the component
+            # would fly off scan after scan. Dropping the correlation keeps P positive definite.
+            covs[j, :2, 2:] = 0.0
+            covs[j, 2:, :2] = 0.0
         means[j, 0] += s0
         means[j, 1] += s1
         covs[j, 0, 0], covs[j, 1, 1] = p00, p11

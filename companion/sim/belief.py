@@ -6,7 +6,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.plan.world import World
-from companion.sat.mixture import Mixture, make_mixture
+from companion.sat.mixture import Mixture, lift_positions, make_mixture
 
 FloatArray = NDArray[np.float64]
 
@@ -43,11 +43,4 @@ def initial_belief(
         means = world.clip(np.concatenate([around, extra]))
         weights = [1.0] * count
         covs = np.broadcast_to(variance_m2 * np.eye(2), (count, 2, 2))
-    n = means.shape[0]
-    full_means = np.zeros((n, state_dim))
-    full_means[:, :2] = means
-    full_covs = np.zeros((n, state_dim, state_dim))
-    full_covs[:, :2, :2] = covs
-    if state_dim == 4:
-        full_covs[:, 2, 2] = full_covs[:, 3, 3] = velocity_var_m2_s2
-    return make_mixture(weights, full_means, full_covs)
+    return make_mixture(weights, *lift_positions(means, covs, state_dim, velocity_var_m2_s2))
