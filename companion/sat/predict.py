@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from enum import Enum
+from functools import lru_cache
 
 import numpy as np
 from numba import njit
@@ -26,12 +27,22 @@ class LinearModel(Enum):
         return 2 if self is LinearModel.CONSTANT_POSITION else 4
 
 
+@lru_cache(maxsize=64)
 def transition(model: LinearModel, dt_s: float, q_m2_per_s: float) -> tuple[FloatArray, FloatArray]:
-    """F and Q of the linear model over dt_s (Vo & Ma Table 1, step 2).
+    """F and Q of the linear model over dt_s (Vo & Ma Table 1, step 2); read-only, memoised.
 
     Constant position is a random walk, Q = q dt I. Constant velocity is the white-noise
     acceleration model with spectral density q: Q = q [[dt^3/3, dt^2/2], [dt^2/2, dt]] per axis.
     """
+    f, q = _transition(model, dt_s, q_m2_per_s)
+    f.setflags(write=False)
+    q.setflags(write=False)
+    return f, q
+
+
+def _transition(
+    model: LinearModel, dt_s: float, q_m2_per_s: float
+) -> tuple[FloatArray, FloatArray]:
     if model is LinearModel.CONSTANT_POSITION:
         return np.eye(2), q_m2_per_s * dt_s * np.eye(2)
     eye = np.eye(2)
@@ -46,8 +57,8 @@ def predict_linear(mix: Mixture, f: FloatArray, q: FloatArray, p_survive: float)
     """w = p_S w, m = F m, P = F P F^T + Q for every component (Vo & Ma Table 1, step 2)."""
     if mix.size == 0:
         return mix
-    if mix.dim == 2 and np.array_equal(f, np.eye(2)):
-        means = mix.means  # constant position: F = I, the mean does not move
+    if f.shape == (2, 2):  # constant position: F = I, the mean does not move
+        means = mix.means
         covs = mix.covs + q
     else:
         means = mix.means @ f.T
