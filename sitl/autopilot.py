@@ -89,6 +89,10 @@ CAPABILITIES = (
     | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
     | mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
 )
+SENDABLE = frozenset({
+    mavlink.MAVLINK_MSG_ID_HEARTBEAT, mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION,
+    mavlink.MAVLINK_MSG_ID_VFR_HUD, *PX4_RATES_HZ,
+})  # what _send_message can send
 TYPEMASK_POSITION = 0b111  # bits set: ignore x, y, z
 TYPEMASK_VELOCITY = 0b111000
 TYPEMASK_YAW = 1 << 10
@@ -497,8 +501,10 @@ class MockAutopilot:
             self._next_due.pop(msg_id, None)
             self._ack(msg, accepted)
         elif cmd == mavlink.MAV_CMD_REQUEST_MESSAGE:
-            sent = self._send_message(int(p[0]))
-            self._ack(msg, accepted if sent else mavlink.MAV_RESULT_UNSUPPORTED)
+            known = int(p[0]) in SENDABLE
+            self._ack(msg, accepted if known else mavlink.MAV_RESULT_UNSUPPORTED)
+            if known:  # the ack first, then the message, as PX4 does
+                self._send_message(int(p[0]))
         elif cmd == mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
             self._ack(msg, accepted)
             self._send_message(mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION)

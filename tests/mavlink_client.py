@@ -1,0 +1,78 @@
+"""A minimal MAVLink 2 ground station over loopback UDP, for the protocol tests."""
+
+from __future__ import annotations
+
+import socket
+import time
+from collections.abc import Callable
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+Predicate = Callable[[mavlink.MAVLink_message], bool]
+
+
+class Client:
+    """Sends to the autopilot's address and reads what it sends back."""
+
+    def __init__(self) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.05)
+        self.mav = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
+        self.mav.robust_parsing = True
+        self.autopilot: tuple[str, int] | None = None
+
+    @property
+    def port(self) -> int:
+        """Where the client listens (the autopilot's remote)."""
+        return int(self.sock.getsockname()[1])
+
+    def send(self, msg: mavlink.MAVLink_message) -> None:
+        """Send to the autopilot (once it has been heard from)."""
+        assert self.autopilot is not None, "no packet from the autopilot yet"
+        self.sock.sendto(msg.pack(self.mav), self.autopilot)
+
+    def messages(self, timeout_s: float) -> list[mavlink.MAVLink_message]:
+        """Everything received within timeout_s of wall time."""
+        out: list[mavlink.MAVLink_message] = []
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            try:
+                data, addr = self.sock.recvfrom(65535)
+            except TimeoutError:
+                continue
+            self.autopilot = (addr[0], addr[1])
+            out.extend(self.mav.parse_buffer(data) or [])
+        return out
+
+    def wait_for(self, predicate: Predicate, timeout_s: float = 5.0) -> mavlink.MAVLink_message:
+        """The first message received that satisfies predicate, or AssertionError on timeout."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            try:
+                data, addr = self.sock.recvfrom(65535)
+            except TimeoutError:
+                continue
+            self.autopilot = (addr[0], addr[1])
+            for msg in self.mav.parse_buffer(data) or []:
+                if predicate(msg):
+                    return msg
+        raise AssertionError("no such message within the timeout")
+
+    def wait_type(self, kind: str, timeout_s: float = 5.0) -> mavlink.MAVLink_message:
+        """The next message of a type."""
+        return self.wait_for(lambda m: m.get_type() == kind, timeout_s)
+
+    def command(
+        self, command: int, *params: float, timeout_s: float = 5.0
+    ) -> mavlink.MAVLink_message:
+        """Send COMMAND_LONG to system 1, component 1, and return its COMMAND_ACK."""
+        p = [*params, *[0.0] * (7 - len(params))]
+        self.send(self.mav.command_long_encode(1, 1, command, 0, *p))
+        return self.wait_for(
+            lambda m: m.get_type() == "COMMAND_ACK" and m.command == command, timeout_s
+        )
+
+    def close(self) -> None:
+        """Close the socket."""
+        self.sock.close()

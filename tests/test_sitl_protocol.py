@@ -1,0 +1,254 @@
+"""The mock autopilot's MAVLink protocol, seen from a plain pymavlink ground station."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from companion.geo import LocalNed
+from sitl.autopilot import AutopilotConfig, Failsafe, MockAutopilot
+from sitl.clock import SimClock
+from sitl.link import UdpLink
+from sitl.modes import Behaviour, Flavour, decode_custom_mode, encode
+from tests.mavlink_client import Client
+
+SPEEDUP = 10.0
+GEO = LocalNed(37.2, -80.4, 600.0)
+ACCEPTED, DENIED = mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_DENIED
+CUSTOM = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+
+
+@pytest.fixture
+def client() -> Iterator[Client]:
+    c = Client()
+    yield c
+    c.close()
+
+
+def _start(client: Client, **config: object) -> MockAutopilot:
+    cfg = AutopilotConfig(**config)  # type: ignore[arg-type]
+    link = UdpLink([("127.0.0.1", client.port)], np.random.default_rng(1))
+    autopilot = MockAutopilot(cfg, link, SimClock(SPEEDUP), GEO)
+    autopilot.start()
+    client.wait_type("HEARTBEAT")
+    return autopilot
+
+
+@pytest.fixture
+def px4(client: Client) -> Iterator[MockAutopilot]:
+    autopilot = _start(client, armable_after_s=0.0)
+    yield autopilot
+    autopilot.stop()
+
+
+@pytest.fixture
+def copter(client: Client) -> Iterator[MockAutopilot]:
+    autopilot = _start(client, flavour=Flavour.ARDUPILOT, armable_after_s=0.0)
+    yield autopilot
+    autopilot.stop()
+
+
+def _mode(client: Client, flavour: Flavour = Flavour.PX4) -> Behaviour | None:
+    hb = client.wait_type("HEARTBEAT")
+    return decode_custom_mode(flavour, hb.custom_mode)
+
+
+def _px4_mode(client: Client, behaviour: Behaviour) -> int:
+    custom = encode(Flavour.PX4, behaviour)
+    ack = client.command(mavlink.MAV_CMD_DO_SET_MODE, CUSTOM, (custom >> 16) & 0xFF,
+                         (custom >> 24) & 0xFF)
+    return int(ack.result)
+
+
+def _stream_setpoints(client: Client, ned: tuple[float, float, float], seconds_wall: float,
+                      mask: int = 0xDF8) -> None:
+    end = time.monotonic() + seconds_wall
+    while time.monotonic() < end:
+        client.send(client.mav.set_position_target_local_ned_encode(
+            0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, mask, *ned, 0, 0, 0, 0, 0, 0, 0.0, 0.0))
+        client.messages(0.02)
+
+
+def _fly_up(client: Client, autopilot: MockAutopilot, alt_m: float = 5.0) -> None:
+    assert client.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1).result == ACCEPTED
+    _stream_setpoints(client, (0.0, 0.0, -alt_m), 0.3)
+    assert _px4_mode(client, Behaviour.OFFBOARD) == ACCEPTED
+    _stream_setpoints(client, (0.0, 0.0, -alt_m), 0.8)
+    assert -autopilot.snapshot().vehicle.position_ned[2] > 2.0
+
+
+def test_heartbeat_identifies_a_px4_quadrotor_at_one_hertz(client: Client, px4: MockAutopilot
+                                                           ) -> None:
+    beats = [m for m in client.messages(0.45) if m.get_type() == "HEARTBEAT"]
+    assert 3 <= len(beats) <= 6  # 1 Hz of simulated time at 10x: ~4.5 in 0.45 s
+    hb = beats[-1]
+    assert (hb.get_srcSystem(), hb.get_srcComponent()) == (1, 1)
+    assert hb.autopilot == mavlink.MAV_AUTOPILOT_PX4
+    assert hb.type == mavlink.MAV_TYPE_QUADROTOR
+    assert hb.base_mode & CUSTOM
+    assert not hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+    assert hb.custom_mode == (3 << 16)  # POSCTL at boot
+    raw, _ = client.sock.recvfrom(65535)
+    assert raw[0] == 0xFD  # MAVLink 2 framing
+
+
+def test_px4_mode_encoding_and_acks(client: Client, px4: MockAutopilot) -> None:
+    assert _px4_mode(client, Behaviour.HOLD) == ACCEPTED
+    hb = client.wait_for(lambda m: m.get_type() == "HEARTBEAT" and m.custom_mode != (3 << 16))
+    assert hb.custom_mode == (4 << 16) | (3 << 24)  # AUTO.LOITER
+    ack = client.command(mavlink.MAV_CMD_DO_SET_MODE, CUSTOM, 42, 0)
+    assert ack.result == DENIED  # no such mode
+    assert client.command(mavlink.MAV_CMD_DO_SET_MODE, 0, 4, 3).result == (
+        mavlink.MAV_RESULT_UNSUPPORTED)  # without CUSTOM_MODE_ENABLED
+    assert client.command(mavlink.MAV_CMD_DO_FENCE_ENABLE, 1).result == (
+        mavlink.MAV_RESULT_UNSUPPORTED)
+    assert client.command(mavlink.MAV_CMD_NAV_TAKEOFF).result == DENIED  # not armed
+    assert client.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1).result == ACCEPTED
+    assert client.wait_for(lambda m: m.get_type() == "HEARTBEAT"
+                           and m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+
+
+def test_request_message_and_parameters(client: Client, px4: MockAutopilot) -> None:
+    ack = client.command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
+    assert ack.result == ACCEPTED
+    version = client.wait_type("AUTOPILOT_VERSION")
+    assert version.capabilities & mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+    assert version.capabilities & mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
+    client.send(client.mav.param_request_read_encode(1, 1, b"MIS_TAKEOFF_ALT", -1))
+    value = client.wait_type("PARAM_VALUE")
+    assert value.param_id == "MIS_TAKEOFF_ALT" and value.param_value == pytest.approx(2.5)
+    client.send(client.mav.param_set_encode(1, 1, b"MIS_TAKEOFF_ALT", 8.0,
+                                            mavlink.MAV_PARAM_TYPE_REAL32))
+    assert client.wait_type("PARAM_VALUE").param_value == pytest.approx(8.0)
+
+
+def test_offboard_is_refused_without_a_setpoint_stream(client: Client, px4: MockAutopilot
+                                                       ) -> None:
+    assert _px4_mode(client, Behaviour.OFFBOARD) == DENIED
+    _stream_setpoints(client, (0.0, 0.0, -3.0), 0.3)
+    assert _px4_mode(client, Behaviour.OFFBOARD) == ACCEPTED
+
+
+@pytest.mark.parametrize(
+    ("failsafe", "expected"),
+    [
+        (Failsafe.HOLD, Behaviour.HOLD),
+        (Failsafe.LAND, Behaviour.LAND),
+        (Failsafe.RTL, Behaviour.RTL),
+    ],
+)
+def test_offboard_loss_leaves_offboard_to_the_failsafe(
+    client: Client, failsafe: Failsafe, expected: Behaviour
+) -> None:
+    autopilot = _start(client, armable_after_s=0.0, offboard_failsafe=failsafe)
+    try:
+        _fly_up(client, autopilot)
+        assert autopilot.snapshot().behaviour is Behaviour.OFFBOARD
+        client.messages(0.2)  # no setpoints for 2 s of simulated time
+        assert autopilot.snapshot().behaviour is expected
+        assert any("offboard setpoints lost" in t for t in autopilot.statustexts)
+    finally:
+        autopilot.stop()
+
+
+def test_type_mask_position_velocity_and_yaw(client: Client, px4: MockAutopilot) -> None:
+    _fly_up(client, px4)
+    _stream_setpoints(client, (6.0, -4.0, -5.0), 1.2)  # position, yaw ignored by 0xDF8
+    snap = px4.snapshot().vehicle
+    np.testing.assert_allclose(snap.position_ned, [6.0, -4.0, -5.0], atol=0.3)
+    assert snap.yaw_rad == pytest.approx(0.0, abs=1e-6)
+    ignore_position = 0b111 | 0b111000000 | (1 << 11)  # velocity + yaw
+    end = time.monotonic() + 0.5
+    while time.monotonic() < end:
+        client.send(client.mav.set_position_target_local_ned_encode(
+            0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, ignore_position, 0, 0, 0, 0.0, 2.0, 0.0,
+            0, 0, 0, 1.0, 0.0))
+        client.messages(0.02)
+    snap = px4.snapshot().vehicle
+    assert snap.velocity_ned[1] == pytest.approx(2.0, abs=0.3)
+    assert snap.yaw_rad == pytest.approx(1.0, abs=0.05)
+
+
+def test_pilot_override_wins_and_offboard_is_not_reentered(client: Client, px4: MockAutopilot
+                                                           ) -> None:
+    _fly_up(client, px4)
+    px4.pilot_set_mode(Behaviour.POSITION)
+    _stream_setpoints(client, (10.0, 0.0, -5.0), 0.5)  # setpoints keep coming: ignored
+    assert px4.snapshot().behaviour is Behaviour.POSITION
+    assert _mode(client) is Behaviour.POSITION
+    assert abs(px4.snapshot().vehicle.position_ned[0]) < 1.0
+
+
+def test_disarm_is_refused_in_the_air_unless_forced(client: Client, px4: MockAutopilot) -> None:
+    _fly_up(client, px4)
+    assert client.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0).result == DENIED
+    assert client.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196).result == ACCEPTED
+
+
+def test_ardupilot_streams_nothing_until_asked(client: Client, copter: MockAutopilot) -> None:
+    kinds = {m.get_type() for m in client.messages(0.4)}
+    assert kinds == {"HEARTBEAT"}
+    hb = client.wait_type("HEARTBEAT")
+    assert hb.autopilot == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
+    assert hb.custom_mode == 0  # STABILIZE
+    interval_us = 100_000
+    ack = client.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+                         mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, interval_us)
+    assert ack.result == ACCEPTED
+    local = client.wait_type("LOCAL_POSITION_NED")
+    # Local NED is about the EKF origin, not the take-off point: (4, -3) m away by default.
+    assert (local.x, local.y) == pytest.approx((-4.0, 3.0), abs=1e-3)
+    client.send(client.mav.request_data_stream_encode(1, 1, mavlink.MAV_DATA_STREAM_EXTRA1, 5, 1))
+    client.wait_type("ATTITUDE")
+
+
+def test_ardupilot_arming_rules_and_guided(client: Client, copter: MockAutopilot) -> None:
+    def set_mode(number: int) -> int:
+        return int(client.command(mavlink.MAV_CMD_DO_SET_MODE, CUSTOM, number).result)
+
+    assert set_mode(9) == ACCEPTED  # LAND
+    assert client.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1).result == DENIED
+    assert set_mode(4) == ACCEPTED  # GUIDED: no setpoint stream needed
+    assert client.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1).result == ACCEPTED
+    assert client.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 6.0).result == ACCEPTED
+    client.messages(0.6)
+    assert -copter.snapshot().vehicle.position_ned[2] == pytest.approx(6.0, abs=0.5)
+
+
+def test_gps_glitch_moves_the_report_not_the_vehicle(client: Client, px4: MockAutopilot) -> None:
+    before = client.wait_type("LOCAL_POSITION_NED")
+    px4.gps_glitch((20.0, 0.0, 0.0), duration_s=3.0)
+    during = client.wait_type("LOCAL_POSITION_NED")
+    assert during.x - before.x == pytest.approx(20.0, abs=0.1)
+    assert px4.snapshot().vehicle.position_ned[0] == pytest.approx(0.0, abs=1e-9)
+    client.messages(0.35)
+    assert client.wait_type("LOCAL_POSITION_NED").x == pytest.approx(before.x, abs=0.1)
+
+
+def test_link_faults(client: Client, px4: MockAutopilot) -> None:
+    px4.link.faults.cut_until_s = px4.clock.now_s() + 3.0
+    assert not [m for m in client.messages(0.2) if m.get_type() == "HEARTBEAT"]
+    client.wait_type("HEARTBEAT", timeout_s=1.0)  # back after 3 simulated seconds
+    px4.link.faults.loss_in = 1.0
+    client.send(client.mav.command_long_encode(1, 1, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0,
+                                               1, 0, 0, 0, 0, 0, 0))
+    assert not [m for m in client.messages(0.2) if m.get_type() == "COMMAND_ACK"]
+    px4.link.faults.loss_in = 0.0
+    px4.link.faults.loss_out = 0.3
+    beats = [m for m in client.messages(1.0) if m.get_type() == "HEARTBEAT"]
+    assert 2 <= len(beats) <= 9  # ~10 sent, ~30 % lost
+    assert px4.link.dropped_out > 0
+
+
+def test_reboot_goes_silent_and_comes_back_disarmed(client: Client, px4: MockAutopilot) -> None:
+    assert client.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1).result == ACCEPTED
+    px4.reboot(downtime_s=2.0)
+    assert not [m for m in client.messages(0.1) if m.get_type() == "HEARTBEAT"]
+    hb = client.wait_type("HEARTBEAT", timeout_s=1.0)
+    assert not hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+    assert px4.snapshot().boot == 1
+    assert client.wait_type("ATTITUDE").time_boot_ms < 2000
