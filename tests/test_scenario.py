@@ -24,17 +24,20 @@ from companion.sim.scenario import (
     BeliefComponent,
     BeliefSpec,
     FilterSpec,
+    GeoSpec,
     MetricsSpec,
     RobotSpec,
     Scenario,
     SensorSpec,
     TargetsSpec,
+    VehicleSpec,
     WorldSpec,
     load_scenario,
     parse_scenario,
     scenario_to_dict,
     schema_markdown,
 )
+from companion.vision.camera import CameraModel
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -96,7 +99,8 @@ ospa_c = 100.0
 ospa_p = 2.0
 """  # noqa: E501
 
-SECTIONS = ("world", "targets", "sensor", "robot", "belief", "filter", "metrics")
+SECTIONS = ("world", "targets", "sensor", "robot", "belief", "filter", "metrics", "geo", "camera",
+            "vehicle")
 
 
 def _error(data: dict[str, Any]) -> str:
@@ -157,11 +161,13 @@ def test_every_declared_default_is_valid_and_declarations_cover_every_field() ->
     assert {k.field for k in sc._TOP} == top_fields
     spec_types = {
         "world": WorldSpec, "targets": TargetsSpec, "sensor": SensorSpec, "robot": RobotSpec,
-        "belief": BeliefSpec, "filter": FilterSpec, "metrics": MetricsSpec,
+        "belief": BeliefSpec, "filter": FilterSpec, "metrics": MetricsSpec, "geo": GeoSpec,
+        "camera": CameraModel, "vehicle": VehicleSpec,
     }
     assert tuple(sc._SECTIONS) == SECTIONS
     for section, keys in sc._SECTIONS.items():
-        assert [k.field for k in keys] == [f.name for f in dataclasses.fields(spec_types[section])]
+        stored = [k.field for k in keys if k.stored]
+        assert stored == [f.name for f in dataclasses.fields(spec_types[section])]
     assert [k.field for k in sc._COMPONENT_KEYS] == [
         f.name for f in dataclasses.fields(BeliefComponent)
     ]
@@ -293,11 +299,13 @@ def test_missing_file_and_toml_syntax_error(tmp_path: Path) -> None:
     ("data", "message"),
     [
         ({"sede": 1}, "sede: unknown key (did you mean 'seed'? known: name, seed, dt, steps, "
-                      "world, targets, sensor, robot, belief, filter, metrics)"),
+                      "world, targets, sensor, robot, belief, filter, metrics, geo, camera, "
+                      "vehicle)"),
         ({"zzz": 1}, "zzz: unknown key (known: name, seed, dt, steps, world, targets, sensor, "
-                     "robot, belief, filter, metrics)"),
+                     "robot, belief, filter, metrics, geo, camera, vehicle)"),
         (_with("targets", cout=3), "targets.cout: unknown key (did you mean 'count'? known: "
-                                   "count, positions, speed, turn_every, appear, disappear)"),
+                                   "count, positions, speed, turn_every, appear, disappear, "
+                                   "tag_size_m)"),
         (_with("metrics", ospa_cut=1), "metrics.ospa_cut: unknown key (did you mean 'ospa_c'? "
                                        "known: ospa_c, ospa_p)"),
         ({"belief": {"kind": "explicit", "components": [{"mean": [0, 0], "wieght": 2}]}},
@@ -309,12 +317,49 @@ def test_unknown_keys_are_named(data: dict[str, Any], message: str) -> None:
     assert _error(data) == message
 
 
-@pytest.mark.parametrize("table", ["geo", "camera", "vehicle"])
-def test_sitl_tables_are_reserved(table: str) -> None:
-    assert _error({table: {"anything": 1}}) == (
-        f"{table}: the [{table}] table is reserved for the SITL mission and is not read by the "
-        "filter-only simulation"
-    )
+def test_sitl_tables_default_to_px4_sitl_home_and_a_level_90_degree_camera() -> None:
+    s = parse_scenario({})
+    assert s.geo.origin == (47.397742, 8.545594, 488.0)
+    assert s.geo.utm_epsg == 32632  # Zurich: UTM zone 32 north
+    assert (s.camera.fx_px, s.camera.fy_px, s.camera.cx_px, s.camera.cy_px) == (
+        320.0, 320.0, 319.5, 239.5)
+    assert (s.vehicle.flavour, s.vehicle.altitude_m, s.vehicle.offboard_failsafe) == (
+        "px4", 8.0, "hold")
+    assert s.targets.tag_size_m == 0.5
+
+
+def test_utm_zone_follows_the_world_centre_unless_given() -> None:
+    # A world whose corner is just west of the 6 E zone boundary and whose centre is east of it.
+    data: dict[str, Any] = {"world": {"size": [2000.0, 100.0]}, "geo": {"origin": [45, 5.99, 0]}}
+    assert parse_scenario(data).geo.utm_epsg == 32632
+    data["geo"]["utm_epsg"] = 32631
+    assert parse_scenario(data).geo.utm_epsg == 32631
+    data["geo"]["utm_epsg"] = 4326
+    assert _error(data) == "geo.utm_epsg: must be a WGS84 / UTM zone (326xx, 327xx), got 4326"
+
+
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        ({"geo": {"origin": [95.0, 0.0, 0.0]}}, "geo.origin[0]: must be in [-90, 90], got 95.0"),
+        ({"geo": {"origin": [45.0, 0.0]}},
+         "geo.origin: must be an array of 3 numbers [lat, lon, alt], got 2 items"),
+        ({"camera": {"hfov_deg": 90.0, "fx_px": 300.0}},
+         "camera.hfov_deg: give either hfov_deg or fx_px (and fy_px)"),
+        ({"camera": {"cx_px": 1000.0}},
+         "camera.cx_px: must lie inside the image [-0.5, 639.5], got 1000.0"),
+        ({"camera": {"dist": [-0.9, 0.0, 0.0, 0.0, 0.0]}},
+         "camera.dist: distortion (-0.9, 0.0, 0.0, 0.0, 0.0) folds over or does not invert "
+         "inside the image: each pixel must see exactly one ray"),
+        ({"vehicle": {"flavour": "inav"}},
+         'vehicle.flavour: must be one of "px4", "ardupilot", got string "inav"'),
+        ({"sensor": {"fov": "camera"}, "camera": {"mount_rpy_deg": [0.0, 80.0, 0.0]}},
+         'sensor.fov: "camera": the level camera sees the horizon (check camera.mount_rpy_deg); '
+         "its footprint is unbounded"),
+    ],
+)
+def test_sitl_table_errors_name_the_key(data: dict[str, Any], message: str) -> None:
+    assert _error(data) == message
 
 
 def test_section_must_be_a_table() -> None:
@@ -542,11 +587,23 @@ def test_shrinking_the_world_is_checked_against_positions() -> None:
     )
 
 
-def test_camera_fov_needs_the_sitl_camera_table() -> None:
-    assert _error(_with("sensor", fov="camera")) == (
-        'sensor.fov: "camera" needs the [camera] table of the SITL mission, not available in '
-        "the filter-only simulation"
-    )
+def test_camera_fov_is_the_level_footprint_at_the_search_altitude() -> None:
+    # 90 degree horizontal FOV at 8 m: 16 m across (east) by 12 m (north), centred below.
+    s = parse_scenario(_with("sensor", fov="camera"))
+    polygon = s.sensor.fov_polygon_xy
+    np.testing.assert_allclose(np.sort(polygon, axis=0),
+                               [[-8.0, -6.0], [-8.0, -6.0], [8.0, 6.0], [8.0, 6.0]], atol=1e-9)
+    x, y = polygon[:, 0], polygon[:, 1]
+    assert np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y) > 0  # counter-clockwise
+    # Heading east turns it: 16 m north-south by 12 m east-west.
+    turned = parse_scenario({"sensor": {"fov": "camera"}, "vehicle": {"heading_deg": 90.0}})
+    np.testing.assert_allclose(np.ptp(turned.sensor.fov_polygon_xy, axis=0), [12.0, 16.0])
+    wide = parse_scenario({"sensor": {"fov": "camera"}, "camera": {"hfov_deg": 120.0},
+                           "vehicle": {"altitude_m": 20.0}})
+    assert np.ptp(wide.sensor.fov_polygon_xy[:, 0]) == pytest.approx(
+        2 * 20.0 * math.tan(math.radians(60.0)))
+    assert _error({"sensor": {"fov": "camera", "fov_polygon": [[0, 0], [1, 0], [0, 1]]}}) == (
+        'sensor.fov_polygon: is only allowed when sensor.fov = "polygon", got fov "camera"')
 
 
 def test_polygon_fov_is_stored_counter_clockwise() -> None:
@@ -786,7 +843,8 @@ def test_any_value_for_any_key_raises_only_config_error_naming_it(
         s = parse_scenario(data)
     except ConfigError as exc:
         # The bad key itself, an entry inside it, or a key whose rule ties it to this one.
-        tied = {"world": ("targets.", "robot.start"), "targets": ("belief.count",)}
+        tied = {"world": ("targets.", "robot.start"), "targets": ("belief.count",),
+                "camera": ("sensor.fov",), "vehicle": ("sensor.fov",)}
         assert exc.key.startswith((f"{section}.", *tied.get(section, ())))
         return
     assert parse_scenario(scenario_to_dict(s)) == s

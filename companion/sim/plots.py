@@ -292,7 +292,7 @@ def _trajectory_figure(r: SimResult, where: str) -> Figure:
     ax.add_patch(Rectangle((0.0, 0.0), size_x, size_y, fill=False, edgecolor="k", linewidth=1.2))
     handles.append(Line2D([], [], color="k", linewidth=1.2, label="world"))
 
-    if s.sensor.fov == "polygon":
+    if s.sensor.fov != "disk":
         corners = np.asarray(s.sensor.fov_polygon_xy, dtype=np.float64)
         reach_m = float(np.hypot(corners[:, 0], corners[:, 1]).max())
         fov_patch: Any = Polygon(corners + last, closed=True)

@@ -89,7 +89,7 @@ def planned_steps(s: Scenario, world: World) -> int:
 
 def sensing_region(s: Scenario, robot_xy: FloatArray) -> Region:
     """The FOV on the ground for a robot at robot_xy."""
-    if s.sensor.fov == "polygon":
+    if s.sensor.fov != "disk":
         return ConvexPolygon(s.sensor.fov_polygon_xy + robot_xy)
     return Disk(robot_xy.copy(), s.sensor.fov_radius_m)
 

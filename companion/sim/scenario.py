@@ -28,19 +28,24 @@ from typing import Any, Generic, Literal, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import ConvexHull
 
 from companion.errors import ConfigError
+from companion.geo import LocalNed, Utm, utm_zone_for
 from companion.sat.gp import GpParams
+from companion.vision.camera import BodyPose, CameraModel, ground_footprint
 
 __all__ = [
     "BeliefComponent",
     "BeliefSpec",
     "FilterSpec",
+    "GeoSpec",
     "MetricsSpec",
     "RobotSpec",
     "Scenario",
     "SensorSpec",
     "TargetsSpec",
+    "VehicleSpec",
     "WorldSpec",
     "load_scenario",
     "parse_scenario",
@@ -96,6 +101,7 @@ class TargetsSpec(_ArrayEq):
     turn_every_steps: int
     appear: tuple[tuple[int, float, float], ...]  # (step, x_m, y_m)
     disappear: tuple[tuple[int, int], ...]  # (step, index into initial + appeared targets)
+    tag_size_m: float  # SITL: edge of each target's AprilTag (black square)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -105,6 +111,7 @@ class SensorSpec(_ArrayEq):
     fov: Literal["disk", "polygon", "camera"]
     fov_radius_m: float
     fov_polygon_xy: FloatArray  # (k, 2) offsets from the robot, metres, counter-clockwise
+    # (for fov = "camera": the level camera's footprint at the search altitude)
     p_detect: float
     noise_std_m: float
     clutter_prob: float
@@ -177,6 +184,44 @@ class MetricsSpec:
 
 
 @dataclass(frozen=True, slots=True)
+class GeoSpec:
+    """Where the world lies on the Earth: its (0, 0) corner, and the UTM zone of the flight."""
+
+    origin: tuple[float, float, float]  # lat_deg, lon_deg, alt_m (ground at the corner)
+    utm_epsg: int
+
+    def local_ned(self) -> LocalNed:
+        """The local NED frame at the world's (0, 0) corner, on the ground."""
+        return LocalNed(*self.origin)
+
+    def utm(self) -> Utm:
+        """The flight's UTM zone."""
+        return Utm(self.utm_epsg)
+
+
+@dataclass(frozen=True, slots=True)
+class VehicleSpec:
+    """The SITL's vehicle and autopilot: flavour, search altitude, limits, failsafes, sensors."""
+
+    flavour: Literal["px4", "ardupilot"]
+    altitude_m: float
+    heading_deg: float
+    max_speed_m_s: float
+    max_accel_m_s2: float
+    max_yaw_rate_deg_s: float
+    takeoff_altitude_m: float
+    rtl_altitude_m: float
+    offboard_loss_timeout_s: float
+    offboard_failsafe: Literal["hold", "land", "rtl"]
+    armable_after_s: float
+    position_noise_m: float
+    gps_drift_m_per_sqrt_s: float
+    battery_flight_s: float
+    battery_low_percent: float
+    ekf_origin_offset_m: tuple[float, float]
+
+
+@dataclass(frozen=True, slots=True)
 class Scenario:
     """A whole scenario; a run is a pure function of it (the seed included)."""
 
@@ -191,6 +236,9 @@ class Scenario:
     belief: BeliefSpec
     filter: FilterSpec
     metrics: MetricsSpec
+    geo: GeoSpec
+    camera: CameraModel
+    vehicle: VehicleSpec
 
 
 # ---------------------------------------------------------------------------------------------
@@ -356,6 +404,28 @@ class _Pair(_Kind[tuple[float, float]]):
         return list(value)
 
 
+class _Floats(_Kind[tuple[float, ...]]):
+    """A fixed-length array of numbers, each position with its own range: [lat, lon, alt]."""
+
+    def __init__(self, shape_doc: str, *items: _Float) -> None:
+        self.shape_doc, self.items = shape_doc, items
+        ranges = [f"{name} {item.range}" for name, item in
+                  zip(shape_doc.strip("[]").split(", "), items, strict=True) if item.range]
+        self.doc = f"{shape_doc} (numbers" + (f"; {', '.join(ranges)})" if ranges else ")")
+
+    def parse(self, key: str, raw: object) -> tuple[float, ...]:
+        n = len(self.items)
+        cells = _array_items(key, raw, f"of {n} numbers {self.shape_doc}")
+        if len(cells) != n:
+            got = _count(len(cells), "item")
+            raise ConfigError(key, f"must be an array of {n} numbers {self.shape_doc}, got {got}")
+        return tuple(item.parse(f"{key}[{i}]", v) for i, (item, v) in
+                     enumerate(zip(self.items, cells, strict=True)))
+
+    def dump(self, value: tuple[float, ...]) -> object:
+        return list(value)
+
+
 def _frozen(rows: Sequence[Sequence[float]], ncols: int) -> FloatArray:
     """A read-only float array of shape (len(rows), ncols)."""
     out = np.array(rows, dtype=np.float64).reshape(len(rows), ncols)
@@ -467,6 +537,7 @@ class _Key:
     default: object
     doc: str
     project: bool = False  # the project's addition to scenario-format.md
+    stored: bool = True  # False: only shapes other fields (camera.hfov_deg), not written back
 
 
 _GP = GpParams()
@@ -497,6 +568,9 @@ _SECTIONS: dict[str, tuple[_Key, ...]] = {
              "targets that enter the world later"),
         _Key("disappear", "disappear", _Rows("[step, index]", _Int(ge=0), _Int(ge=0)), [],
              "targets that leave; index counts initial targets, then appearing ones in order"),
+        _Key("tag_size_m", "tag_size_m", _Float(gt=0, le=10), 0.5,
+             "SITL: edge of the black square of each target's tag36h11 AprilTag (target i wears "
+             "tag id i), metres", project=True),
     ),
     "sensor": (
         _Key("fov", "fov", _Choice("disk", "polygon", "camera"), "disk",
@@ -580,6 +654,78 @@ _SECTIONS: dict[str, tuple[_Key, ...]] = {
         _Key("ospa_c", "ospa_c", _Float(gt=0), 100.0, "OSPA cut-off, metres"),
         _Key("ospa_p", "ospa_p", _Float(ge=1), 2.0, "OSPA order"),
     ),
+    "geo": (
+        _Key("origin", "origin",
+             _Floats("[lat, lon, alt]", _Float(ge=-90, le=90), _Float(ge=-180, le=180),
+                     _Float(ge=-500, le=9000)),
+             [47.397742, 8.545594, 488.0],
+             "WGS84 degrees and metres of the ground at the world's (0, 0) corner (default: PX4 "
+             "SITL's home); the world's x runs east and y north from it"),
+        _Key("utm_epsg", "utm_epsg", _Int(), _Derived("the zone of the world's centre"),
+             "EPSG code of the WGS84 / UTM zone the service's tracks and outputs use for the "
+             "whole flight (326xx north, 327xx south)"),
+    ),
+    "camera": (
+        _Key("width_px", "width_px", _Int(ge=16), 640, "image width, pixels"),
+        _Key("height_px", "height_px", _Int(ge=16), 480, "image height, pixels"),
+        _Key("hfov_deg", "hfov_deg", _Float(ge=1, le=170), _Derived("90 unless fx_px is given"),
+             "horizontal field of view (square pixels): sets fx_px = fy_px", stored=False),
+        _Key("fx_px", "fx_px", _Float(gt=0), _Derived("from `camera.hfov_deg`"),
+             "focal length in x, pixels"),
+        _Key("fy_px", "fy_px", _Float(gt=0), _Derived("`camera.fx_px`"),
+             "focal length in y, pixels"),
+        _Key("cx_px", "cx_px", _Float(), _Derived("the image centre, (width_px - 1) / 2"),
+             "principal point x, pixels (OpenCV: pixel centres at integers)"),
+        _Key("cy_px", "cy_px", _Float(), _Derived("the image centre, (height_px - 1) / 2"),
+             "principal point y, pixels"),
+        _Key("dist", "dist", _Floats("[k1, k2, p1, p2, k3]", *(_Float(),) * 5),
+             [0.0, 0.0, 0.0, 0.0, 0.0], "OpenCV distortion coefficients"),
+        _Key("mount_rpy_deg", "mount_rpy_deg", _Floats("[roll, pitch, yaw]", *(_Float(),) * 3),
+             [0.0, 0.0, 0.0],
+             "mounting relative to straight down (top of the image forward), degrees; positive "
+             "pitch looks ahead of nadir"),
+        _Key("mount_offset_m", "mount_offset_m",
+             _Floats("[forward, right, down]", *(_Float(ge=-10, le=10),) * 3), [0.0, 0.0, 0.0],
+             "camera centre in the body frame, metres"),
+        _Key("rate_hz", "rate_hz", _Float(gt=0, le=1000), 10.0, "frames per second"),
+        _Key("noise_std", "noise_std", _Float(ge=0, le=64), 2.0,
+             "SITL: exposure noise of the rendered frames, grey levels"),
+    ),
+    "vehicle": (
+        _Key("flavour", "flavour", _Choice("px4", "ardupilot"), "px4",
+             "SITL autopilot: PX4 or ArduPilot Copter"),
+        _Key("altitude_m", "altitude_m", _Float(gt=0, le=500), 8.0,
+             "search altitude above home, metres (the paper's field experiment: 8)"),
+        _Key("heading_deg", "heading_deg", _Float(ge=-360, le=360), 0.0,
+             "heading at boot and while searching, degrees clockwise from north"),
+        _Key("max_speed_m_s", "max_speed_m_s", _Float(gt=0), 8.0,
+             "SITL: horizontal speed limit of the autopilot, m/s"),
+        _Key("max_accel_m_s2", "max_accel_m_s2", _Float(gt=0), 4.0,
+             "SITL: acceleration limit, m/s^2 (it tilts the vehicle and its camera)"),
+        _Key("max_yaw_rate_deg_s", "max_yaw_rate_deg_s", _Float(gt=0), 60.0,
+             "SITL: yaw-rate limit, degrees/s"),
+        _Key("takeoff_altitude_m", "takeoff_altitude_m", _Float(gt=0), 2.5,
+             "SITL: the autopilot's default take-off altitude (PX4 MIS_TAKEOFF_ALT), metres"),
+        _Key("rtl_altitude_m", "rtl_altitude_m", _Float(gt=0), 30.0,
+             "SITL: return altitude (PX4 RTL_RETURN_ALT), metres"),
+        _Key("offboard_loss_timeout_s", "offboard_loss_timeout_s", _Float(gt=0), 1.0,
+             "SITL: setpoint silence before the offboard failsafe (PX4 COM_OF_LOSS_T), seconds"),
+        _Key("offboard_failsafe", "offboard_failsafe", _Choice("hold", "land", "rtl"), "hold",
+             "SITL: what PX4 does when offboard setpoints stop (COM_OBL_RC_ACT)"),
+        _Key("armable_after_s", "armable_after_s", _Float(ge=0), 2.0,
+             "SITL: estimator settling after boot before arming is allowed, seconds"),
+        _Key("position_noise_m", "position_noise_m", _Float(ge=0), 0.0,
+             "SITL: white noise on the reported position, metres per axis"),
+        _Key("gps_drift_m_per_sqrt_s", "gps_drift_m_per_sqrt_s", _Float(ge=0), 0.0,
+             "SITL: random walk of the reported position, m/sqrt(s)"),
+        _Key("battery_flight_s", "battery_flight_s", _Float(gt=0), 1800.0,
+             "SITL: flight time on a full battery, seconds"),
+        _Key("battery_low_percent", "battery_low_percent", _Float(ge=0, le=100), 20.0,
+             "SITL: battery level at which the autopilot returns home"),
+        _Key("ekf_origin_offset_m", "ekf_origin_offset_m", _Pair(_Float()), [4.0, -3.0],
+             "SITL, ArduPilot: EKF origin minus home, [north, east] metres (its local NED is "
+             "about the EKF origin)"),
+    ),
 }
 
 _COMPONENT_KEYS: tuple[_Key, ...] = (
@@ -588,8 +734,6 @@ _COMPONENT_KEYS: tuple[_Key, ...] = (
     _Key("cov", "cov", _Matrix2(), _Derived("`belief.variance` times the identity"),
          "covariance, m^2"),
 )
-
-_RESERVED_TABLES = ("geo", "camera", "vehicle")
 
 _CROSS_KEY_RULES = (
     "`targets.positions` given: `targets.count` must equal its length or be omitted.",
@@ -722,15 +866,30 @@ def _convex_ccw(key: str, points: FloatArray) -> FloatArray:
     return _frozen(points.tolist(), 2)
 
 
-def _sensor(v: dict[str, Any]) -> SensorSpec:
-    if v["fov"] == "camera":
-        raise ConfigError(
-            "sensor.fov",
-            '"camera" needs the [camera] table of the SITL mission, not available in the '
-            "filter-only simulation",
-        )
+_FOOTPRINT_MAX_RANGE_M = 10_000.0
+
+
+def camera_footprint_xy(camera: CameraModel, altitude_m: float, heading_deg: float) -> FloatArray:
+    """(k, 2) counter-clockwise (x east, y north) offsets of the ground a level camera sees."""
+    pose = BodyPose.from_euler(0.0, 0.0, 0.0, -altitude_m, yaw_rad=math.radians(heading_deg))
+    samples = 8 if camera.has_distortion else 1
+    ne = ground_footprint(camera, pose, _FOOTPRINT_MAX_RANGE_M, samples)
+    if np.max(np.hypot(ne[:, 0], ne[:, 1])) >= 0.999 * _FOOTPRINT_MAX_RANGE_M:
+        raise ConfigError("sensor.fov", '"camera": the level camera sees the horizon (check '
+                                        "camera.mount_rpy_deg); its footprint is unbounded")
+    xy = ne[:, ::-1]
+    hull = ConvexHull(xy)  # 2-D hull vertices come counter-clockwise
+    return _convex_ccw("sensor.fov", xy[hull.vertices])
+
+
+def _sensor(v: dict[str, Any], camera: CameraModel, vehicle: VehicleSpec) -> SensorSpec:
     polygon: FloatArray = v["fov_polygon_xy"]
-    if v["fov"] == "polygon":
+    if v["fov"] == "camera":
+        if polygon.shape[0]:
+            raise ConfigError("sensor.fov_polygon",
+                              'is only allowed when sensor.fov = "polygon", got fov "camera"')
+        v["fov_polygon_xy"] = camera_footprint_xy(camera, vehicle.altitude_m, vehicle.heading_deg)
+    elif v["fov"] == "polygon":
         if polygon.shape[0] == 0:
             raise ConfigError("sensor.fov_polygon", 'is required when sensor.fov = "polygon"')
         v["fov_polygon_xy"] = _convex_ccw("sensor.fov_polygon", polygon)
@@ -740,6 +899,28 @@ def _sensor(v: dict[str, Any]) -> SensorSpec:
             f'is only allowed when sensor.fov = "polygon", got fov {_toml(v["fov"])}',
         )
     return SensorSpec(**v)
+
+
+def _geo(v: dict[str, Any], world: WorldSpec) -> GeoSpec:
+    if v["utm_epsg"] is None:
+        lat, lon, _ = GeoSpec(v["origin"], 0).local_ned().ned_to_geodetic(
+            world.size_m[1] / 2.0, world.size_m[0] / 2.0, 0.0)
+        v["utm_epsg"] = utm_zone_for(float(lat), float(lon))
+    Utm(v["utm_epsg"])  # ConfigError("geo.utm_epsg") unless a UTM zone
+    return GeoSpec(**v)
+
+
+def _camera(v: dict[str, Any]) -> CameraModel:
+    hfov_deg = v.pop("hfov_deg")
+    if hfov_deg is not None:
+        if v["fx_px"] is not None or v["fy_px"] is not None:
+            raise ConfigError("camera.hfov_deg", "give either hfov_deg or fx_px (and fy_px)")
+        v["fx_px"] = 0.5 * v["width_px"] / math.tan(math.radians(0.5 * hfov_deg))
+    if v["fy_px"] is None:
+        v["fy_px"] = v["fx_px"]
+    # Left at NaN, CameraModel derives them: a 90 degree FOV, the principal point at the centre.
+    given: dict[str, Any] = {k: (math.nan if x is None else x) for k, x in v.items()}
+    return CameraModel(**given)
 
 
 def _robot(v: dict[str, Any], world: WorldSpec) -> RobotSpec:
@@ -791,12 +972,6 @@ def parse_scenario(data: Mapping[str, Any], name: str = "scenario") -> Scenario:
         raise ConfigError(name, f"must be a table of scenario keys, got {_describe(data)}")
     top_known = [k.leaf for k in _TOP] + list(_SECTIONS)
     for key in data:
-        if key in _RESERVED_TABLES:
-            raise ConfigError(
-                str(key),
-                f"the [{key}] table is reserved for the SITL mission and is not read by the "
-                "filter-only simulation",
-            )
         if key not in top_known:
             raise _unknown(str(key), str(key), top_known)
     top = _read_table({k: data[k] for k in data if k not in _SECTIONS}, "", _TOP)
@@ -808,15 +983,20 @@ def parse_scenario(data: Mapping[str, Any], name: str = "scenario") -> Scenario:
         return _read_table(_section_table(data, section), section, _SECTIONS[section])
 
     targets = _targets(read("targets"), world)
+    camera = _camera(read("camera"))
+    vehicle = VehicleSpec(**read("vehicle"))
     return Scenario(
         **top,
         world=world,
         targets=targets,
-        sensor=_sensor(read("sensor")),
+        sensor=_sensor(read("sensor"), camera, vehicle),
         robot=_robot(read("robot"), world),
         belief=_belief(read("belief"), targets.count),
         filter=FilterSpec(**read("filter")),
         metrics=MetricsSpec(**read("metrics")),
+        geo=_geo(read("geo"), world),
+        camera=camera,
+        vehicle=vehicle,
     )
 
 
@@ -841,7 +1021,7 @@ def load_scenario(path: str | Path, seed: int | None = None) -> Scenario:
 
 
 def _dump_table(spec: object, keys: Sequence[_Key]) -> dict[str, Any]:
-    return {k.leaf: k.kind.dump(getattr(spec, k.field)) for k in keys}
+    return {k.leaf: k.kind.dump(getattr(spec, k.field)) for k in keys if k.stored}
 
 
 def scenario_to_dict(s: Scenario) -> dict[str, Any]:
@@ -885,6 +1065,15 @@ def schema_markdown() -> str:
         "Coordinates are metres in a local frame whose origin is the world's lower-left corner,",
         "x east, y north.",
         "",
+        "The `[geo]`, `[camera]` and `[vehicle]` tables (all their keys are the project's) place",
+        "the world on the Earth and describe the camera and the vehicle of the",
+        "software-in-the-loop mission (`companion-sitl`); keys marked *SITL* only shape the",
+        "simulated drone, the others are also what the service is told about its own camera",
+        "and search. In the SITL, `sensor.p_detect` hides each target's tag from a frame with",
+        "probability 1 - p_detect and `sensor.clutter_prob` / `clutter_rate` draw distractor",
+        "tags (ids above the targets') in a frame's footprint; `sensor.noise_std` is then only",
+        "the filter's R, the measurement noise being whatever the camera pipeline makes.",
+        "",
         "## Top level",
         "",
         *_markdown_rows("", _TOP),
@@ -902,12 +1091,6 @@ def schema_markdown() -> str:
         "## Rules across keys",
         "",
         *[f"- {rule}" for rule in _CROSS_KEY_RULES],
-        "",
-        "## Reserved tables",
-        "",
-        "The tables " + ", ".join(f"`[{t}]`" for t in _RESERVED_TABLES) + " belong to the",
-        "software-in-the-loop mission; the filter-only simulation rejects a file that has them,",
-        "with a message saying so.",
         "",
     ]
     return "\n".join(lines)
