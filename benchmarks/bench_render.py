@@ -22,13 +22,13 @@ import pupil_apriltags
 from numpy.typing import NDArray
 
 from companion.vision.camera import BodyPose, CameraModel, project_points
+from companion.vision.tags import PUPIL_OFFSET_PX, TagDetector
 from sitl.camera import Renderer, Tag
 
 FloatArray = NDArray[np.float64]
 
 ALTITUDE_M = 8.0
 TARGET_FPS = 30.0
-PUPIL_OFFSET_PX = 0.5
 BARREL = (-0.2, 0.05, 0.001, -0.001, 0.0)
 LAYOUT = [(0.0, 0.0, 0.0), (3.0, 2.0, 0.3), (-2.0, -4.0, 1.0), (4.0, -5.0, 2.0),
           (-4.0, 5.0, -1.0), (1.5, 6.0, 0.7)]
@@ -88,7 +88,7 @@ def bench_resolution(width_px: int, height_px: int, dist: tuple[float, ...], rep
           f"p95 {1e3 * np.percentile(render_s, 95):.2f} ms) "
           f"{'ok' if fps > TARGET_FPS else 'BELOW'} target {TARGET_FPS:.0f}")
     for decimate in (1.0, 2.0):
-        detector = pupil_apriltags.Detector(families="tag36h11", quad_decimate=decimate,
+        detector = TagDetector(families="tag36h11", quad_decimate=decimate,
                                             nthreads=threads)
         found: list[int] = []
         errors: list[float] = []
@@ -113,7 +113,7 @@ def sweep_tag_size(frames_per_size: int) -> None:
     """Detection rate of tags wholly in view at 8 m, by tag size, default camera."""
     camera = CameraModel()
     renderer = Renderer(camera, texture_seed=2)
-    detectors = {d: pupil_apriltags.Detector(families="tag36h11", quad_decimate=d)
+    detectors = {d: TagDetector(families="tag36h11", quad_decimate=d)
                  for d in (1.0, 2.0)}
     print("tag size at 8 m (default camera: 40 px per metre), detection rate:")
     for size_m in (0.15, 0.2, 0.25, 0.3, 0.4, 0.5, 0.6, 0.7):

@@ -132,6 +132,8 @@ class Snapshot:
     armed: bool
     vehicle: VehicleState  # true state, world NED
     battery_percent: float
+    clock_s: float  # the SITL clock's time of this state (boot time + t_s)
+    online: bool  # False while rebooting: silent, no time base
 
 
 @dataclass
@@ -153,7 +155,7 @@ class MockAutopilot:
         self._rng = np.random.default_rng(config.seed)
         self._lock = threading.RLock()
         self._thread: threading.Thread | None = None
-        self._running = threading.Event()
+        self._stopping = threading.Event()
         self._boot = 0
         self._reboot_until_s = -1.0
         self._glitch: tuple[FloatArray, float] = (np.zeros(3), -1.0)
@@ -203,13 +205,13 @@ class MockAutopilot:
 
     def start(self) -> None:
         """Run the loop in a thread."""
-        self._running.set()
+        self._stopping.clear()
         self._thread = threading.Thread(target=self._loop, name="sitl-autopilot", daemon=True)
         self._thread.start()
 
     def stop(self) -> None:
         """Stop the loop and close the link."""
-        self._running.clear()
+        self._stopping.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
             self._thread = None
@@ -228,11 +230,8 @@ class MockAutopilot:
         """The state now."""
         with self._lock:
             return Snapshot(self._t_s, self._boot, self._behaviour, self._armed, self._vehicle,
-                            self._battery_percent())
-
-    def boot_time_s(self, wall_sim_s: float) -> float:
-        """The autopilot's boot-time stamp of a simulation time (for frames)."""
-        return wall_sim_s - self._boot_wall_s
+                            self._battery_percent(), self._boot_wall_s + self._t_s,
+                            self._reboot_until_s < 0.0)
 
     # -- the operator and the faults ----------------------------------------------------------
 
@@ -267,7 +266,7 @@ class MockAutopilot:
     # -- the loop -----------------------------------------------------------------------------
 
     def _loop(self) -> None:
-        while self._running.is_set():
+        while not self._stopping.is_set():
             now = self.clock.now_s()
             with self._lock:
                 if now < self._reboot_until_s:
@@ -281,7 +280,7 @@ class MockAutopilot:
                         self._reset(now)
                         self._boot = boot
             if rebooting:
-                self._running.wait(0.005)
+                self._stopping.wait(0.005)
                 continue
             packets = self.link.receive(now, wait_wall_s=0.002)
             with self._lock:

@@ -252,14 +252,18 @@ class MjpegServer:
             raise InputError("image must be a uint8 array of shape (H, W) or (H, W, 3), got "
                              f"{getattr(image, 'dtype', type(image).__name__)} "
                              f"{getattr(image, 'shape', '')}")
+        ok, encoded = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self._jpeg_quality])
+        if not ok:
+            raise InputError(f"JPEG encoding failed for an image of shape {image.shape}")
+        self.publish_jpeg(encoded.tobytes(), capture_time_s)
+
+    def publish_jpeg(self, jpeg: bytes, capture_time_s: float) -> None:
+        """Serve already encoded (or deliberately garbled) JPEG bytes as the newest frame."""
         if (not isinstance(capture_time_s, int | float) or isinstance(capture_time_s, bool)
                 or not math.isfinite(capture_time_s) or capture_time_s < 0.0):
             raise InputError(f"capture_time_s must be a finite number >= 0, "
                              f"got {capture_time_s!r}")
-        ok, encoded = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self._jpeg_quality])
-        if not ok:
-            raise InputError(f"JPEG encoding failed for an image of shape {image.shape}")
-        self._slot.put(encoded.tobytes(), round(capture_time_s * 1e6))
+        self._slot.put(bytes(jpeg), round(capture_time_s * 1e6))
 
     def stop(self) -> None:
         """Stop serving: end every client, join all threads, close the socket. Idempotent."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import socket
 import time
 from collections.abc import Callable
@@ -9,6 +10,7 @@ from collections.abc import Callable
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 Predicate = Callable[[mavlink.MAVLink_message], bool]
+POSITION_ONLY = 0xDF8  # type mask: use x, y, z and yaw, ignore velocity and acceleration
 
 
 class Client:
@@ -72,6 +74,35 @@ class Client:
         return self.wait_for(
             lambda m: m.get_type() == "COMMAND_ACK" and m.command == command, timeout_s
         )
+
+    def set_px4_mode(self, custom_mode: int) -> int:
+        """DO_SET_MODE with a PX4 custom mode ((main << 16) | (sub << 24)); the ack's result."""
+        ack = self.command(mavlink.MAV_CMD_DO_SET_MODE,
+                           mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                           (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF)
+        return int(ack.result)
+
+    def stream_setpoints(self, ned: tuple[float, float, float], seconds_wall: float,
+                         mask: int = POSITION_ONLY) -> list[mavlink.MAVLink_message]:
+        """Send a local NED setpoint at 50 Hz for seconds_wall; what was received meanwhile."""
+        received: list[mavlink.MAVLink_message] = []
+        end = time.monotonic() + seconds_wall
+        while time.monotonic() < end:
+            self.send(self.mav.set_position_target_local_ned_encode(
+                0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, mask, *ned, 0, 0, 0, 0, 0, 0, 0.0, 0.0))
+            received += self.messages(0.02)
+        return received
+
+    def fly_to(self, ned: tuple[float, float, float], tolerance_m: float,
+               timeout_wall_s: float) -> mavlink.MAVLink_message:
+        """Stream a setpoint until LOCAL_POSITION_NED is within tolerance and nearly still."""
+        end = time.monotonic() + timeout_wall_s
+        while time.monotonic() < end:
+            for m in self.stream_setpoints(ned, 0.1):
+                if m.get_type() == "LOCAL_POSITION_NED" and math.dist(
+                        (m.x, m.y, m.z), ned) < tolerance_m and math.hypot(m.vx, m.vy) < 0.1:
+                    return m
+        raise AssertionError(f"did not reach {ned} within {timeout_wall_s} s")
 
     def close(self) -> None:
         """Close the socket."""

@@ -7,7 +7,6 @@ import dataclasses
 import sys
 import warnings
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import matplotlib
@@ -24,8 +23,6 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from companion.errors import CompanionError, InputError
-from companion.sat.mixture import NO_LABEL, Mixture
-from companion.sat.tracks import TrackLog, Tracks
 from companion.sim.plots import (
     DPI,
     MAP_FIGSIZE_IN,
@@ -35,6 +32,7 @@ from companion.sim.plots import (
     plot_bands,
     plot_run,
 )
+from companion.sim.run import SimResult, simulate
 from companion.sim.scenario import Scenario, parse_scenario
 
 FloatArray = npt.NDArray[np.float64]
@@ -42,12 +40,6 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 FIGURES = ("count", "mahalanobis", "ospa", "trajectory")
 STEPS = 300
 
-try:  # others write the simulation in parallel; until it imports, runs are synthesised below
-    from companion.sim.run import simulate
-
-    REAL_SIM = True
-except ImportError:
-    REAL_SIM = False
 
 
 def _pixels(size_in: tuple[float, float]) -> tuple[int, int]:
@@ -84,88 +76,9 @@ def _scenario(fov: str = "disk", empty: bool = False) -> Scenario:
     return parse_scenario(data)
 
 
-@dataclasses.dataclass(frozen=True)
-class _StandIn:
-    """The fields of companion.sim.run.SimResult, for when that module does not import yet."""
-
-    scenario: Scenario
-    seed: int
-    wall_s: float
-    t_s: FloatArray
-    robot_xy: FloatArray
-    true_count: npt.NDArray[np.int64]
-    tracks_confirmed: npt.NDArray[np.int64]
-    weight_sum: FloatArray
-    components: npt.NDArray[np.int64]
-    ospa: FloatArray
-    mahal_closest_mean: FloatArray
-    mahal_second_mean: FloatArray
-    max_track_var_m2: FloatArray
-    step_ms: FloatArray
-    measurements: FloatArray
-    is_clutter: npt.NDArray[np.bool_]
-    final_truth_xy: FloatArray
-    final_state: Any
-
-
-def _synthetic(s: Scenario) -> Any:
-    """A run's result with made-up but consistent series, tracks and mixture."""
-    rng = np.random.default_rng(s.seed)
-    k = s.steps
-    empty = s.sensor.p_detect == 0.0
-    t = np.arange(1, k + 1, dtype=np.float64) * np.float64(s.dt_s)
-    corners = np.array([[x, y] for i, x in enumerate(np.arange(0.0, 41.0, 10.0))
-                        for y in ((0.0, 40.0) if i % 2 == 0 else (40.0, 0.0))])
-    along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(corners, axis=0).T))])
-    walked = np.linspace(0.0, along[-1], k + 1)
-    robot = np.column_stack([np.interp(walked, along, corners[:, i]) for i in (0, 1)])
-    truth = np.array(s.targets.positions_xy, dtype=np.float64)
-    conf = np.zeros(k, dtype=np.int64) if empty else np.minimum(np.arange(k) // 60, 3)
-    mahal_closest = np.where(conf >= 3, 1.0 + rng.random(k), np.inf)
-    mahal_second = np.where(conf >= 3, 12.0 + rng.random(k), np.inf)
-    n_meas = 0 if empty else 120
-    steps = np.sort(rng.integers(1, k + 1, n_meas)).astype(np.float64)
-    is_clutter = rng.random(n_meas) < 0.1
-    xy = truth[rng.integers(0, 3, n_meas)] + rng.normal(0.0, 1.0, (n_meas, 2))
-    xy[is_clutter] = rng.uniform(0.0, 40.0, (int(is_clutter.sum()), 2))
-
-    log = TrackLog.empty(2)
-    n_tracks = 0 if empty else 3
-    ids = np.arange(n_tracks, dtype=np.int64)
-    for j in range(20):
-        wobble = 2.0 * np.cos(j / 3.0 + ids[:, None])
-        unit = np.tile(np.eye(2), (n_tracks, 1, 1))
-        log = log.append(ids, float(j), truth[:n_tracks] + wobble, unit)
-    covs = np.array([[[2.0, 0.8], [0.8, 1.0]]] * n_tracks).reshape(n_tracks, 2, 2)
-    tracks = Tracks(
-        ids=ids, hits=np.full(n_tracks, 20), life=np.full(n_tracks, 20),
-        confirmed=np.ones(n_tracks, dtype=bool), born_t_s=np.zeros(n_tracks),
-        last_t_s=np.full(n_tracks, 19.0), means=truth[:n_tracks] + 0.5, covs=covs,
-        win_t_s=np.zeros((n_tracks, 4)), win_xy=np.zeros((n_tracks, 4, 2)),
-        win_count=np.zeros(n_tracks, dtype=np.int64), log=log, next_id=n_tracks,
-    )
-    n_comp = 0 if empty else 5
-    mixture = Mixture(
-        weights=np.full(n_comp, 0.7), means=rng.uniform(0.0, 40.0, (n_comp, 2)),
-        covs=np.tile(np.diag([9.0, 4.0]), (n_comp, 1, 1)),
-        labels=np.full(n_comp, NO_LABEL, dtype=np.int64),
-    )
-    return _StandIn(
-        scenario=s, seed=s.seed, wall_s=0.0, t_s=t, robot_xy=robot,
-        true_count=np.full(k, 3, dtype=np.int64), tracks_confirmed=conf,
-        weight_sum=conf.astype(np.float64) + 0.3, components=conf + 2,
-        ospa=np.where(conf >= 3, 2.0, 20.0),
-        mahal_closest_mean=mahal_closest, mahal_second_mean=mahal_second,
-        max_track_var_m2=np.where(conf > 0, 2.0, np.nan), step_ms=np.full(k, 0.1),
-        measurements=np.column_stack([steps, xy]), is_clutter=is_clutter,
-        final_truth_xy=truth, final_state=SimpleNamespace(t_s=float(k), mixture=mixture,
-                                                           tracks=tracks),
-    )
-
-
 def _result(fov: str = "disk", empty: bool = False) -> Any:
     s = _scenario(fov, empty)
-    return simulate(s) if REAL_SIM else _synthetic(s)
+    return simulate(s)
 
 
 @pytest.fixture(scope="module")
@@ -182,11 +95,6 @@ def _arrays(result: Any) -> dict[str, FloatArray]:
 
 
 def test_runs_come_from_the_real_simulation(disk_run: Any) -> None:
-    """Reports, in the -ra summary, while the run figures are tested on synthetic runs."""
-    if not REAL_SIM:
-        pytest.skip("companion.sim.run does not import yet: plot_run tested on synthetic runs")
-    from companion.sim.run import SimResult  # noqa: PLC0415
-
     assert isinstance(disk_run, SimResult)
     assert disk_run.t_s.size == STEPS
 

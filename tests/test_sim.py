@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -58,7 +60,8 @@ def test_sensor_detects_in_view_with_p_d_and_adds_clutter_in_view() -> None:
 
 
 def test_non_lawnmower_planner_runs_as_long_as_the_lawn_mower_would() -> None:
-    base = {"world": {"size": [50.0, 50.0]}, "robot": {"lane_spacing": 25.0, "sweeps": 1}}
+    base: dict[str, Any] = {"world": {"size": [50.0, 50.0]},
+                            "robot": {"lane_spacing": 25.0, "sweeps": 1}}
     lawn = parse_scenario(base)
     largest = parse_scenario({**base, "robot": {**base["robot"], "planner": "largest-gaussian"}})
     steps = planned_steps(lawn, World(50.0, 50.0))
@@ -79,7 +82,7 @@ def test_non_lawnmower_planner_runs_as_long_as_the_lawn_mower_would() -> None:
 def test_variants_still_find_every_target(
     extra: dict[str, dict[str, object]], expected: int
 ) -> None:
-    scenario = {
+    scenario: dict[str, Any] = {
         "seed": 2,
         "world": {"size": [50.0, 50.0]},
         "targets": {"positions": [[10.0, 12.0], [40.0, 20.0], [25.0, 42.0]]},

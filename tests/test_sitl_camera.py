@@ -6,7 +6,6 @@ import math
 
 import cv2
 import numpy as np
-import pupil_apriltags
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -19,18 +18,19 @@ from companion.vision.camera import (
     camera_pose_ned,
     distort_normalized,
     ground_footprint,
+    pixels_to_ground,
     project_points,
     quaternion_from_euler,
     rotation_from_quaternion,
     undistort_normalized,
 )
+from companion.vision.tags import TagDetector, detect_centres
 from sitl.camera import Renderer, Tag, tag_bitmap
 
 FloatArray = NDArray[np.float64]
 
 ALTITUDE_M = 8.0
 TAG_SIZE_M = 0.5  # 20 px across at 8 m with the default camera
-PUPIL_OFFSET_PX = 0.5  # pupil-apriltags centres are +0.5 px from OpenCV's (field notes)
 CENTRE_TOL_PX = 1.0
 BARREL = (-0.2, 0.05, 0.001, -0.001, 0.0)
 
@@ -41,17 +41,15 @@ TAGS = [Tag(10 + i, n, e, TAG_SIZE_M, yaw) for i, (n, e, yaw) in enumerate(LAYOU
 
 
 @pytest.fixture(scope="module")
-def detector() -> pupil_apriltags.Detector:
-    return pupil_apriltags.Detector(families="tag36h11", quad_decimate=1.0, nthreads=1)
+def detector() -> TagDetector:
+    return TagDetector(families="tag36h11", quad_decimate=1.0, nthreads=1)
 
 
-def _detect(detector: pupil_apriltags.Detector, image: NDArray[np.uint8]) -> dict[int, FloatArray]:
+def _detect(detector: TagDetector, image: NDArray[np.uint8]) -> dict[int, FloatArray]:
     """Detected tag id -> centre in OpenCV pixel convention."""
-    found: dict[int, FloatArray] = {}
-    for det in detector.detect(image):
-        assert det.tag_id not in found, "one tag detected twice"
-        found[det.tag_id] = np.asarray(det.center, dtype=np.float64) - PUPIL_OFFSET_PX
-    return found
+    ids, centres = detect_centres(detector, image)
+    assert len(set(ids.tolist())) == len(ids), "one tag detected twice"
+    return {int(i): c for i, c in zip(ids, centres, strict=True)}
 
 
 def _expected(camera: CameraModel, pose: BodyPose, tags: list[Tag],
@@ -69,7 +67,7 @@ def _expected(camera: CameraModel, pose: BodyPose, tags: list[Tag],
     return out
 
 
-def _render_and_check(detector: pupil_apriltags.Detector, camera: CameraModel, pose: BodyPose,
+def _render_and_check(detector: TagDetector, camera: CameraModel, pose: BodyPose,
                       tags: list[Tag], min_expected: int) -> dict[int, FloatArray]:
     image = Renderer(camera, texture_seed=7).render(pose, tags, np.random.default_rng(1))
     found = _detect(detector, image)
@@ -104,12 +102,12 @@ def _axis_ground_point(camera: CameraModel, pose: BodyPose) -> tuple[float, floa
     CameraModel(width_px=1280, height_px=720),
 ], ids=["default", "barrel", "pincushion", "mount-offset", "720p"])
 def test_level_hover_detects_every_tag_at_its_projection(
-        detector: pupil_apriltags.Detector, camera: CameraModel) -> None:
+        detector: TagDetector, camera: CameraModel) -> None:
     pose = BodyPose.from_euler(0.0, 0.0, 0.0, -ALTITUDE_M)
     _render_and_check(detector, camera, pose, TAGS, min_expected=len(TAGS) - 2)
 
 
-def test_level_hover_image_is_a_map_view_north_up(detector: pupil_apriltags.Detector) -> None:
+def test_level_hover_image_is_a_map_view_north_up(detector: TagDetector) -> None:
     """Default mount, heading north, 8 m: 1 m on the ground is fx / 8 = 40 px; north is up."""
     pose = BodyPose.from_euler(0.0, 0.0, 0.0, -ALTITUDE_M)
     tags = [Tag(1, 3.0, 2.0, TAG_SIZE_M)]
@@ -122,7 +120,7 @@ def test_level_hover_image_is_a_map_view_north_up(detector: pupil_apriltags.Dete
     (0.0, 5.0, 0.0), (-5.0, 0.0, 0.0), (0.0, 0.0, 90.0), (8.0, -6.0, 30.0), (15.0, 20.0, -120.0),
 ])
 def test_attitude_moves_detections_as_projected(
-        detector: pupil_apriltags.Detector, roll_deg: float, pitch_deg: float,
+        detector: TagDetector, roll_deg: float, pitch_deg: float,
         yaw_deg: float) -> None:
     pose = BodyPose.from_euler(0.0, 1.0, -0.5, -ALTITUDE_M, math.radians(roll_deg),
                                math.radians(pitch_deg), math.radians(yaw_deg))
@@ -130,7 +128,7 @@ def test_attitude_moves_detections_as_projected(
         _render_and_check(detector, camera, pose, TAGS, min_expected=3)
 
 
-def test_pitch_shifts_and_yaw_rotates_the_image(detector: pupil_apriltags.Detector) -> None:
+def test_pitch_shifts_and_yaw_rotates_the_image(detector: TagDetector) -> None:
     """Signs by hand: nose up 5 deg moves the nadir tag ~fx tan 5 deg down the image; facing
     east puts a tag 3 m north on the left of the image."""
     camera = CameraModel()
@@ -151,7 +149,7 @@ def test_pitch_shifts_and_yaw_rotates_the_image(detector: pupil_apriltags.Detect
 
 
 def test_hidden_tags_are_missed_and_distractors_detected(
-        detector: pupil_apriltags.Detector) -> None:
+        detector: TagDetector) -> None:
     camera = CameraModel()
     pose = BodyPose.from_euler(0.0, 0.0, 0.0, -ALTITUDE_M)
     distractors = [Tag(300, -1.0, 3.0, TAG_SIZE_M, 0.4), Tag(301, 2.0, -2.0, 0.6)]
@@ -165,7 +163,7 @@ def test_hidden_tags_are_missed_and_distractors_detected(
         assert float(np.hypot(*(found[tag.tag_id] - expected[tag.tag_id]))) < CENTRE_TOL_PX
 
 
-def test_every_tag36h11_id_is_drawn_decodable(detector: pupil_apriltags.Detector) -> None:
+def test_every_tag36h11_id_is_drawn_decodable(detector: TagDetector) -> None:
     """Bitmaps from OpenCV's table decode as the same id in pupil-apriltags (sampled ids)."""
     for tag_id in (0, 1, 42, 311, 586):
         cells = tag_bitmap(tag_id)
@@ -395,3 +393,17 @@ def test_bad_poses_and_tags_raise_input_error() -> None:
         Tag(1, 0.0, 0.0, 0.0)
     with pytest.raises(InputError, match="points_ned"):
         project_points(CameraModel(), BodyPose.from_euler(0, 0, 0, -5), np.zeros((3, 2)))
+
+
+def test_pixels_to_ground_inverts_project_points_under_any_attitude() -> None:
+    camera = CameraModel(dist=(-0.05, 0.01, 0.001, -0.001, 0.0), mount_offset_m=(0.1, 0.0, 0.05))
+    pose = BodyPose.from_euler(0.0, 3.0, -2.0, -8.0, roll_rad=0.1, pitch_rad=-0.15, yaw_rad=1.2)
+    rng = np.random.default_rng(4)
+    ground = np.column_stack([rng.uniform(-3, 9, 20), rng.uniform(-8, 4, 20), np.zeros(20)])
+    pixels, in_front = project_points(camera, pose, ground)
+    assert in_front.all()
+    np.testing.assert_allclose(pixels_to_ground(camera, pose, pixels), ground[:, :2], atol=1e-6)
+    # A ray above the horizon never meets the ground.
+    level_ahead = CameraModel(mount_rpy_deg=(0.0, 90.0, 0.0))
+    top = np.array([[319.5, 0.0]])
+    assert np.isnan(pixels_to_ground(level_ahead, pose, top)).all()

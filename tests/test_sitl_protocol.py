@@ -58,26 +58,14 @@ def _mode(client: Client, flavour: Flavour = Flavour.PX4) -> Behaviour | None:
 
 
 def _px4_mode(client: Client, behaviour: Behaviour) -> int:
-    custom = encode(Flavour.PX4, behaviour)
-    ack = client.command(mavlink.MAV_CMD_DO_SET_MODE, CUSTOM, (custom >> 16) & 0xFF,
-                         (custom >> 24) & 0xFF)
-    return int(ack.result)
-
-
-def _stream_setpoints(client: Client, ned: tuple[float, float, float], seconds_wall: float,
-                      mask: int = 0xDF8) -> None:
-    end = time.monotonic() + seconds_wall
-    while time.monotonic() < end:
-        client.send(client.mav.set_position_target_local_ned_encode(
-            0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, mask, *ned, 0, 0, 0, 0, 0, 0, 0.0, 0.0))
-        client.messages(0.02)
+    return client.set_px4_mode(encode(Flavour.PX4, behaviour))
 
 
 def _fly_up(client: Client, autopilot: MockAutopilot, alt_m: float = 5.0) -> None:
     assert client.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1).result == ACCEPTED
-    _stream_setpoints(client, (0.0, 0.0, -alt_m), 0.3)
+    client.stream_setpoints((0.0, 0.0, -alt_m), 0.3)
     assert _px4_mode(client, Behaviour.OFFBOARD) == ACCEPTED
-    _stream_setpoints(client, (0.0, 0.0, -alt_m), 0.8)
+    client.stream_setpoints((0.0, 0.0, -alt_m), 0.8)
     assert -autopilot.snapshot().vehicle.position_ned[2] > 2.0
 
 
@@ -129,7 +117,7 @@ def test_request_message_and_parameters(client: Client, px4: MockAutopilot) -> N
 def test_offboard_is_refused_without_a_setpoint_stream(client: Client, px4: MockAutopilot
                                                        ) -> None:
     assert _px4_mode(client, Behaviour.OFFBOARD) == DENIED
-    _stream_setpoints(client, (0.0, 0.0, -3.0), 0.3)
+    client.stream_setpoints((0.0, 0.0, -3.0), 0.3)
     assert _px4_mode(client, Behaviour.OFFBOARD) == ACCEPTED
 
 
@@ -157,7 +145,7 @@ def test_offboard_loss_leaves_offboard_to_the_failsafe(
 
 def test_type_mask_position_velocity_and_yaw(client: Client, px4: MockAutopilot) -> None:
     _fly_up(client, px4)
-    _stream_setpoints(client, (6.0, -4.0, -5.0), 1.2)  # position, yaw ignored by 0xDF8
+    client.stream_setpoints((6.0, -4.0, -5.0), 1.2)  # position, yaw ignored by 0xDF8
     snap = px4.snapshot().vehicle
     np.testing.assert_allclose(snap.position_ned, [6.0, -4.0, -5.0], atol=0.3)
     assert snap.yaw_rad == pytest.approx(0.0, abs=1e-6)
@@ -177,7 +165,7 @@ def test_pilot_override_wins_and_offboard_is_not_reentered(client: Client, px4: 
                                                            ) -> None:
     _fly_up(client, px4)
     px4.pilot_set_mode(Behaviour.POSITION)
-    _stream_setpoints(client, (10.0, 0.0, -5.0), 0.5)  # setpoints keep coming: ignored
+    client.stream_setpoints((10.0, 0.0, -5.0), 0.5)  # setpoints keep coming: ignored
     assert px4.snapshot().behaviour is Behaviour.POSITION
     assert _mode(client) is Behaviour.POSITION
     assert abs(px4.snapshot().vehicle.position_ned[0]) < 1.0

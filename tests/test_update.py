@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from numpy.typing import NDArray
 
 from companion.sat.fov import ConvexPolygon, Disk
 from companion.sat.mixture import make_mixture
@@ -16,6 +17,7 @@ from companion.sat.update import (
     visibility,
 )
 
+FloatArray = NDArray[np.float64]
 EVERYWHERE = Disk(np.zeros(2), 1e6)
 
 
@@ -39,9 +41,11 @@ def test_one_component_one_measurement_by_hand() -> None:
     assert found.children.labels.tolist() == [7]
 
 
-def _reference_update(weights, means, covs, p_d, zs, r, kappa):  # type: ignore[no-untyped-def]
+def _reference_update(weights: FloatArray, means: FloatArray, covs: FloatArray, p_d: FloatArray,
+                      zs: FloatArray, r: FloatArray, kappa: float
+                      ) -> list[tuple[float, FloatArray, FloatArray]]:
     """Vo & Ma Table 1 steps 3-4, one component and one measurement at a time."""
-    out = []
+    out: list[tuple[float, FloatArray, FloatArray]] = []
     for z in zs:
         terms = []
         for w, m, p, pd in zip(weights, means, covs, p_d, strict=True):

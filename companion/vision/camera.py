@@ -38,6 +38,7 @@ __all__ = [
     "image_border_pixels",
     "is_number",
     "pixel_rays_camera",
+    "pixels_to_ground",
     "pixels_to_normalized",
     "project_points",
     "quaternion_from_euler",
@@ -388,6 +389,21 @@ def pixel_rays_camera(camera: CameraModel, pixels: FloatArray) -> FloatArray:
     if camera.has_distortion:
         xy = undistort_normalized(camera.dist, xy)
     return np.column_stack([xy, np.ones(len(xy))])
+
+
+def pixels_to_ground(camera: CameraModel, pose: BodyPose, pixels: FloatArray) -> FloatArray:
+    """(n,2) pixels -> (n,2) north, east (m) where their rays meet the ground plane; NaN if never.
+
+    The ground is the plane down = 0 of the pose's frame (flat ground at the home altitude).
+    """
+    rays = pixel_rays_camera(camera, pixels)
+    r_ned_cam, centre = camera_pose_ned(camera, pose)
+    rays = rays @ r_ned_cam.T  # d_ned = R_ned_cam d_cam
+    out = np.full((rays.shape[0], 2), np.nan)
+    down = rays[:, 2] > 1e-9
+    t = -centre[2] / rays[down, 2]  # C_d + t d_d = 0
+    out[down] = centre[None, :2] + t[:, None] * rays[down, :2]
+    return out
 
 
 def image_border_pixels(camera: CameraModel, samples_per_edge: int) -> FloatArray:

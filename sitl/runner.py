@@ -1,0 +1,249 @@
+"""One SITL mission: the scenario's world, a mock autopilot on MAVLink and a rendered camera stream.
+
+`Sitl(scenario, ...)` wires them together on loopback; `start()` runs three threads (the
+autopilot, the camera, the fault schedule) and `stop()` ends them all. The camera renders, at
+its frame rate in simulated time, what the downward camera sees from the vehicle's true pose and
+serves it as MJPEG over HTTP, each frame stamped with the autopilot's boot time of that pose.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass
+from types import TracebackType
+
+import cv2
+import numpy as np
+
+from companion.sim.scenario import Scenario
+from companion.vision.camera import BodyPose
+from sitl.autopilot import AutopilotConfig, Failsafe, MockAutopilot, Snapshot
+from sitl.camera import Renderer
+from sitl.clock import SimClock
+from sitl.faults import FaultEvent, FaultPlan
+from sitl.link import UdpLink
+from sitl.modes import Behaviour, Flavour
+from sitl.stream import MjpegServer
+from sitl.vehicle import VehicleLimits
+from sitl.world import TargetWorld, clutter_tags
+
+__all__ = ["FrameCounts", "Sitl", "autopilot_config"]
+
+PX4_OFFBOARD_PORT = 14540  # where PX4 SITL sends MAVLink for an offboard API (MAVSDK)
+_PILOT_MODES = {
+    "posctl": Behaviour.POSITION, "altctl": Behaviour.ALTITUDE, "manual": Behaviour.MANUAL,
+    "hold": Behaviour.HOLD, "land": Behaviour.LAND, "rtl": Behaviour.RTL,
+}
+_SCHEDULE_POLL_WALL_S = 0.01
+
+
+def autopilot_config(scenario: Scenario) -> AutopilotConfig:
+    """The mock autopilot the scenario's [vehicle] table describes, booting at robot.start."""
+    v = scenario.vehicle
+    x_m, y_m = scenario.robot.start_xy
+    return AutopilotConfig(
+        flavour=Flavour(v.flavour),
+        home_ned=(y_m, x_m),
+        home_yaw_deg=v.heading_deg,
+        ekf_origin_offset_ned=v.ekf_origin_offset_m,
+        takeoff_alt_m=v.takeoff_altitude_m,
+        rtl_alt_m=v.rtl_altitude_m,
+        offboard_loss_timeout_s=v.offboard_loss_timeout_s,
+        offboard_failsafe=Failsafe(v.offboard_failsafe),
+        armable_after_s=v.armable_after_s,
+        position_noise_m=v.position_noise_m,
+        gps_drift_m_per_sqrt_s=v.gps_drift_m_per_sqrt_s,
+        battery_flight_s=v.battery_flight_s,
+        battery_low_percent=v.battery_low_percent,
+        limits=VehicleLimits(max_speed_h_m_s=v.max_speed_m_s, max_accel_m_s2=v.max_accel_m_s2,
+                             max_yaw_rate_deg_s=v.max_yaw_rate_deg_s),
+        seed=scenario.seed,
+    )
+
+
+@dataclass
+class FrameCounts:
+    """What the camera did so far."""
+
+    published: int = 0
+    dropped: int = 0  # by a fault
+    late: int = 0  # skipped because rendering fell behind the frame rate
+    offline: int = 0  # not taken while the autopilot rebooted (no time base)
+
+
+class Sitl:
+    """A whole SITL mission on loopback; a context manager that starts and stops it."""
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        *,
+        speedup: float = 1.0,
+        faults: FaultPlan | None = None,
+        host: str = "127.0.0.1",
+        mavlink_port: int = PX4_OFFBOARD_PORT,
+        gcs_port: int | None = None,
+        camera_port: int = 0,
+    ) -> None:
+        self.scenario = scenario
+        self.faults = faults or FaultPlan()
+        seeds = np.random.SeedSequence(scenario.seed).spawn(3)
+        self.clock = SimClock(speedup)
+        self.world = TargetWorld(scenario, np.random.default_rng(seeds[0]))
+        remotes = [(host, mavlink_port)] + ([(host, gcs_port)] if gcs_port is not None else [])
+        link = UdpLink(remotes, np.random.default_rng(seeds[1]), bind=(host, 0))
+        link.faults.loss_in = self.faults.loss_to_autopilot
+        link.faults.loss_out = self.faults.loss_from_autopilot
+        link.faults.latency_s = self.faults.latency_s
+        self.autopilot = MockAutopilot(autopilot_config(scenario), link, self.clock,
+                                       scenario.geo.local_ned())
+        self.renderer = Renderer(scenario.camera, texture_seed=scenario.seed)
+        self.stream = MjpegServer(host, camera_port)
+        self.frames = FrameCounts()
+        self.mavlink_url = f"udpin://{host}:{mavlink_port}"
+        self._camera_rng = np.random.default_rng(seeds[2])
+        self._events: list[FaultEvent] = list(self.faults.events)
+        self._applied = 0
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._threads: list[threading.Thread] = []
+
+    @property
+    def camera_url(self) -> str:
+        """The MJPEG stream (cv2.VideoCapture or MjpegReader opens it)."""
+        return self.stream.url
+
+    # -- lifecycle ----------------------------------------------------------------------------
+
+    def start(self) -> Sitl:
+        """Serve the camera, boot the autopilot, run the camera and the fault schedule."""
+        self.stream.start()
+        self.autopilot.start()
+        self._stopping.clear()
+        for name, target in (("sitl-camera", self._camera_loop),
+                             ("sitl-faults", self._fault_loop)):
+            thread = threading.Thread(target=target, name=name, daemon=True)
+            thread.start()
+            self._threads.append(thread)
+        return self
+
+    def stop(self) -> None:
+        """Stop every thread and close every socket. Idempotent."""
+        self._stopping.set()
+        for thread in self._threads:
+            thread.join(timeout=5.0)
+        self._threads.clear()
+        self.autopilot.stop()
+        self.stream.stop()
+
+    def __enter__(self) -> Sitl:
+        return self.start()
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.stop()
+
+    # -- faults -------------------------------------------------------------------------------
+
+    def inject(self, kind: str, duration_s: float = 0.0, arg: str = "") -> FaultEvent:
+        """Start a fault now (what `--faults` schedules: see sitl.faults)."""
+        event = FaultEvent(kind, self.clock.now_s(), duration_s, arg)
+        with self._lock:
+            self._events.append(event)
+        return event
+
+    def _fault_loop(self) -> None:
+        while not self._stopping.is_set():
+            now = self.clock.now_s()
+            with self._lock:
+                due = [e for e in self._events[self._applied:] if e.at_s <= now]
+                pending = [e for e in self._events[self._applied:] if e.at_s > now]
+                self._events[self._applied:] = due + pending
+                self._applied += len(due)
+            for event in due:
+                self._apply(event)
+            self._stopping.wait(_SCHEDULE_POLL_WALL_S)
+
+    def _apply(self, event: FaultEvent) -> None:
+        ap = self.autopilot
+        if event.kind == "cut":
+            ap.link.faults.cut_until_s = event.at_s + event.duration_s
+        elif event.kind == "gps":
+            north_m, east_m = event.gps_offset_ne_m()
+            ap.gps_glitch((north_m, east_m, 0.0), event.duration_s)
+        elif event.kind == "battery":
+            ap.set_battery_percent(float(event.arg))
+        elif event.kind == "pilot":
+            if event.arg in ("arm", "disarm"):
+                ap.pilot_arm(event.arg == "arm")
+            else:
+                ap.pilot_set_mode(_PILOT_MODES[event.arg])
+        elif event.kind == "reboot":
+            ap.reboot(event.duration_s)
+        # camera faults act frame by frame (_camera_fault)
+
+    def _camera_fault(self, t_s: float) -> str | None:
+        with self._lock:
+            return FaultPlan(events=tuple(self._events)).camera_fault(t_s)
+
+    # -- the camera ---------------------------------------------------------------------------
+
+    def _camera_loop(self) -> None:
+        camera = self.scenario.camera
+        period_s = 1.0 / camera.rate_hz
+        next_s = self.clock.now_s()
+        last: np.ndarray | None = None
+        while not self._stopping.is_set():
+            wait_s = next_s - self.clock.now_s()
+            if wait_s > 0.0 and self._stopping.wait(self.clock.wall_s(wait_s)):
+                break
+            behind = math.floor((self.clock.now_s() - next_s) / period_s)
+            if behind > 0:
+                self.frames.late += behind
+                next_s += behind * period_s
+            next_s += period_s
+            snap = self.autopilot.snapshot()
+            if not snap.online:
+                self.frames.offline += 1
+                continue
+            fault = self._camera_fault(snap.clock_s)
+            if fault == "drop" or self._camera_rng.random() < self.faults.frame_drop:
+                self.frames.dropped += 1
+                continue
+            if fault == "freeze" and last is not None:
+                image = last
+            elif fault == "black":
+                image = np.zeros((camera.height_px, camera.width_px), np.uint8)
+            else:
+                image = self._render(snap)
+            last = image
+            if fault == "corrupt":
+                self.stream.publish_jpeg(self._garbled(image), snap.t_s)
+            else:
+                self.stream.publish(image, snap.t_s)
+            self.frames.published += 1
+
+    def _render(self, snap: Snapshot) -> np.ndarray:
+        s, rng = self.scenario, self._camera_rng
+        v = snap.vehicle
+        north_m, east_m, down_m = (float(c) for c in v.position_ned)
+        pose = BodyPose(snap.t_s, north_m, east_m, down_m, v.quaternion_wxyz())
+        tags = self.world.tags(snap.clock_s)
+        # Misses are per frame; the clutter rate is per step dt, spread over the step's frames.
+        frames_per_step = max(s.camera.rate_hz * s.dt_s, 1.0)
+        hidden = {t.tag_id for t in tags if rng.random() > s.sensor.p_detect}
+        distractors = clutter_tags(
+            s.camera, pose, self.world.target_count, s.targets.tag_size_m,
+            s.sensor.clutter_prob / frames_per_step, s.sensor.clutter_rate / frames_per_step, rng,
+        )
+        return self.renderer.render(pose, tags, rng, distractors=distractors, hidden=hidden)
+
+    def _garbled(self, image: np.ndarray) -> bytes:
+        """A broken JPEG: half the time not decodable at all, else with garbage scan data."""
+        ok, encoded = cv2.imencode(".jpg", image)
+        data = bytearray(encoded.tobytes() if ok else b"")
+        keep = 2 if self._camera_rng.random() < 0.5 else len(data) // 3  # SOI / SOI + header
+        noise = self._camera_rng.integers(0, 256, len(data) - keep, dtype=np.uint8)
+        data[keep:] = noise.tobytes()
+        return bytes(data)
