@@ -94,7 +94,7 @@ def _status(sitl: Sitl) -> str:
     north, east, down = snap.vehicle.position_ned
     armed = "armed" if snap.armed else "disarmed"
     return (f"t {sitl.clock.now_s():7.1f} s  {snap.behaviour.value:<8} {armed:<8} "
-            f"N {north:7.1f} E {east:7.1f} alt {-down:5.1f} m  "
+            f"N {north:7.1f} E {east:7.1f} alt {0.0 - down:5.1f} m  "
             f"battery {snap.battery_percent:3.0f} %  frames {sitl.frames.published}")
 
 
