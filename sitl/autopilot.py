@@ -160,6 +160,7 @@ class MockAutopilot:
         self._reboot_until_s = -1.0
         self._glitch: tuple[FloatArray, float] = (np.zeros(3), -1.0)
         self.statustexts: list[str] = []
+        self.texts_received: list[tuple[int, int, str]] = []  # (component, severity, text)
         self._reset(0.0)
 
     # -- lifecycle ----------------------------------------------------------------------------
@@ -457,6 +458,9 @@ class MockAutopilot:
             if msg.tc1 == 0:
                 now_ns = int(self._t_s * 1e9)
                 self._send(self._mav.timesync_encode(now_ns, msg.ts1))
+        elif kind == "STATUSTEXT":  # a real autopilot routes it on to the ground station
+            text = msg.text if isinstance(msg.text, str) else msg.text.decode(errors="replace")
+            self.texts_received.append((msg.get_srcComponent(), msg.severity, text.rstrip("\x00")))
         elif kind in ("MISSION_REQUEST_LIST", "MISSION_COUNT", "MISSION_CLEAR_ALL"):
             self._send(self._mav.mission_ack_encode(
                 msg.get_srcSystem(), msg.get_srcComponent(), mavlink.MAV_MISSION_UNSUPPORTED))
