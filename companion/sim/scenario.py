@@ -16,15 +16,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import difflib
 import math
-import numbers
 import sys
-import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Generic, Literal, TypeVar
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -32,6 +29,31 @@ from scipy.spatial import ConvexHull
 
 from companion.errors import ConfigError
 from companion.geo import LocalNed, Utm, utm_zone_for
+from companion.keys import (
+    REQUIRED,
+    Bool,
+    Choice,
+    Derived,
+    Float,
+    Floats,
+    Int,
+    Key,
+    Kind,
+    Matrix2,
+    Pair,
+    Points,
+    Rows,
+    Text,
+    array_items,
+    describe,
+    frozen_rows,
+    load_toml,
+    markdown_rows,
+    read_table,
+    section_table,
+    toml_text,
+    unknown_key,
+)
 from companion.sat.gp import GpParams
 from companion.vision.camera import BodyPose, CameraModel, ground_footprint
 
@@ -241,270 +263,17 @@ class Scenario:
     vehicle: VehicleSpec
 
 
-# ---------------------------------------------------------------------------------------------
-# Value kinds: how a raw TOML value is type-checked, range-checked, described and written back
-# ---------------------------------------------------------------------------------------------
-
-_TOML_TYPE_NAMES = ((bool, "boolean"), (int, "integer"), (float, "float"), (str, "string"))
-
-
-def _describe(raw: object) -> str:
-    """'<TOML type> <short value>' for an error message."""
-    if raw is None:
-        return "nothing (None)"
-    name = type(raw).__name__
-    for py_type, toml_name in _TOML_TYPE_NAMES:
-        if isinstance(raw, py_type):
-            name = toml_name
-            break
-    else:
-        if isinstance(raw, list | tuple):
-            name = "array"
-        elif isinstance(raw, Mapping):
-            name = "table"
-    text = _toml(raw) if isinstance(raw, bool | str) else repr(raw)
-    if len(text) > 40:
-        text = text[:37] + "..."
-    return f"{name} {text}"
-
-
-def _toml(value: object) -> str:
-    """A value in TOML syntax (for defaults in the reference and values in messages)."""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(value, list | tuple):
-        return "[" + ", ".join(_toml(v) for v in value) + "]"
-    return repr(value)
-
-
-def _count(n: int, noun: str) -> str:
-    return f"{n} {noun}" + ("" if n == 1 else "s")
-
-
-def _array_items(key: str, raw: object, shape_doc: str) -> Sequence[object]:
-    """raw as a sequence (a TOML array), else ConfigError naming key."""
-    if not isinstance(raw, list | tuple):
-        raise ConfigError(key, f"must be an array {shape_doc}, got {_describe(raw)}")
-    return raw
-
-
-class _Kind(Generic[T]):
-    """How one key's value is parsed and checked (`parse`), described (`doc`), written (`dump`)."""
-
-    doc: str = ""
-
-    def parse(self, key: str, raw: object) -> T:
-        """The checked value, or ConfigError(key, ...)."""
-        raise NotImplementedError
-
-    def dump(self, value: T) -> object:
-        """The value as plain TOML data (what `parse` accepts back)."""
-        return value
-
-
-class _Int(_Kind[int]):
-    def __init__(self, ge: int | None = None) -> None:
-        self.ge = ge
-        self.doc = "integer" if ge is None else f"integer >= {ge}"
-
-    def parse(self, key: str, raw: object) -> int:
-        # bool is an int subclass in Python but not an integer in TOML; a float is never an int.
-        if isinstance(raw, bool) or not isinstance(raw, numbers.Integral):
-            raise ConfigError(key, f"must be an integer, got {_describe(raw)}")
-        value = int(raw)
-        if self.ge is not None and value < self.ge:
-            raise ConfigError(key, f"must be >= {self.ge}, got {value}")
-        return value
-
-
-class _Float(_Kind[float]):
-    def __init__(
-        self, gt: float | None = None, ge: float | None = None, le: float | None = None
-    ) -> None:
-        self.gt, self.ge, self.le = gt, ge, le
-        if ge is not None and le is not None:
-            self.range = f"in [{ge}, {le}]"
-        elif gt is not None:
-            self.range = f"> {gt}"
-        elif ge is not None:
-            self.range = f">= {ge}"
-        elif le is not None:
-            self.range = f"<= {le}"
-        else:
-            self.range = ""
-        self.doc = f"number {self.range}".rstrip()
-
-    def parse(self, key: str, raw: object) -> float:
-        if isinstance(raw, bool) or not isinstance(raw, numbers.Real):
-            raise ConfigError(key, f"must be a number, got {_describe(raw)}")
-        try:
-            value = float(raw)
-        except OverflowError:  # an integer beyond the float range
-            value = math.inf
-        if not math.isfinite(value):
-            raise ConfigError(key, f"must be finite, got {_describe(raw)}")
-        if (
-            (self.gt is not None and not value > self.gt)
-            or (self.ge is not None and not value >= self.ge)
-            or (self.le is not None and not value <= self.le)
-        ):
-            raise ConfigError(key, f"must be {self.range}, got {value!r}")
-        return value
-
-
-class _Bool(_Kind[bool]):
-    doc = "boolean"
-
-    def parse(self, key: str, raw: object) -> bool:
-        if not isinstance(raw, bool):
-            raise ConfigError(key, f"must be true or false, got {_describe(raw)}")
-        return raw
-
-
-class _Text(_Kind[str]):
-    doc = "non-empty string"
-
-    def parse(self, key: str, raw: object) -> str:
-        if not isinstance(raw, str) or not raw:
-            raise ConfigError(key, f"must be a non-empty string, got {_describe(raw)}")
-        return raw
-
-
-class _Choice(_Kind[str]):
-    def __init__(self, *options: str) -> None:
-        self.options = options
-        self.doc = "one of " + ", ".join(_toml(o) for o in options)
-
-    def parse(self, key: str, raw: object) -> str:
-        if not isinstance(raw, str) or raw not in self.options:
-            raise ConfigError(key, f"must be {self.doc}, got {_describe(raw)}")
-        return raw
-
-
-class _Pair(_Kind[tuple[float, float]]):
-    def __init__(self, item: _Float, ordered: bool = False) -> None:
-        self.item, self.ordered = item, ordered
-        each = f", each {item.range}" if item.range else ""
-        self.doc = f"[number, number]{each}" + (", first <= second" if ordered else "")
-
-    def parse(self, key: str, raw: object) -> tuple[float, float]:
-        items = _array_items(key, raw, "of 2 numbers")
-        if len(items) != 2:
-            got = _count(len(items), "item")
-            raise ConfigError(key, f"must be an array of 2 numbers, got {got}")
-        a = self.item.parse(f"{key}[0]", items[0])
-        b = self.item.parse(f"{key}[1]", items[1])
-        if self.ordered and a > b:
-            raise ConfigError(key, f"must be [lo, hi] with lo <= hi, got {_toml([a, b])}")
-        return (a, b)
-
-    def dump(self, value: tuple[float, float]) -> object:
-        return list(value)
-
-
-class _Floats(_Kind[tuple[float, ...]]):
-    """A fixed-length array of numbers, each position with its own range: [lat, lon, alt]."""
-
-    def __init__(self, shape_doc: str, *items: _Float) -> None:
-        self.shape_doc, self.items = shape_doc, items
-        ranges = [f"{name} {item.range}" for name, item in
-                  zip(shape_doc.strip("[]").split(", "), items, strict=True) if item.range]
-        self.doc = f"{shape_doc} (numbers" + (f"; {', '.join(ranges)})" if ranges else ")")
-
-    def parse(self, key: str, raw: object) -> tuple[float, ...]:
-        n = len(self.items)
-        cells = _array_items(key, raw, f"of {n} numbers {self.shape_doc}")
-        if len(cells) != n:
-            got = _count(len(cells), "item")
-            raise ConfigError(key, f"must be an array of {n} numbers {self.shape_doc}, got {got}")
-        return tuple(item.parse(f"{key}[{i}]", v) for i, (item, v) in
-                     enumerate(zip(self.items, cells, strict=True)))
-
-    def dump(self, value: tuple[float, ...]) -> object:
-        return list(value)
-
-
-def _frozen(rows: Sequence[Sequence[float]], ncols: int) -> FloatArray:
-    """A read-only float array of shape (len(rows), ncols)."""
-    out = np.array(rows, dtype=np.float64).reshape(len(rows), ncols)
-    out.flags.writeable = False
-    return out
-
-
-class _Points(_Kind[FloatArray]):
-    """An array of [x, y] points, returned as a read-only (n, 2) array."""
-
-    doc = "array of [x, y] (metres)"
-
-    def parse(self, key: str, raw: object) -> FloatArray:
-        pair = _Pair(_Float())
-        items = _array_items(key, raw, "of [x, y] points")
-        return _frozen([pair.parse(f"{key}[{i}]", p) for i, p in enumerate(items)], 2)
-
-    def dump(self, value: FloatArray) -> object:
-        return [[float(x), float(y)] for x, y in value]
-
-
-class _Rows(_Kind[tuple[tuple[Any, ...], ...]]):
-    """An array of fixed-length arrays whose positions have their own kinds ([step, x, y], ...)."""
-
-    def __init__(self, shape_doc: str, *columns: _Kind[Any]) -> None:
-        self.shape_doc, self.columns = shape_doc, columns
-        self.doc = f"array of {shape_doc} (" + "; ".join(c.doc for c in columns) + ")"
-
-    def parse(self, key: str, raw: object) -> tuple[tuple[Any, ...], ...]:
-        rows = []
-        for i, row in enumerate(_array_items(key, raw, f"of {self.shape_doc}")):
-            cells = _array_items(f"{key}[{i}]", row, self.shape_doc)
-            if len(cells) != len(self.columns):
-                raise ConfigError(
-                    f"{key}[{i}]",
-                    f"must be an array {self.shape_doc}, got {_count(len(cells), 'item')}",
-                )
-            pairs = zip(self.columns, cells, strict=True)
-            rows.append(tuple(c.parse(f"{key}[{i}][{j}]", v) for j, (c, v) in enumerate(pairs)))
-        return tuple(rows)
-
-    def dump(self, value: tuple[tuple[Any, ...], ...]) -> object:
-        return [list(row) for row in value]
-
-
-class _Matrix2(_Kind[FloatArray]):
-    """A symmetric positive definite 2x2 matrix [[a, b], [b, d]], returned read-only."""
-
-    doc = "[[number, number], [number, number]], symmetric positive definite"
-
-    def parse(self, key: str, raw: object) -> FloatArray:
-        rows = _array_items(key, raw, "[[a, b], [b, d]]")
-        if len(rows) != 2:
-            got = _count(len(rows), "row")
-            raise ConfigError(key, f"must be a 2x2 array [[a, b], [b, d]], got {got}")
-        row0 = _Pair(_Float()).parse(f"{key}[0]", rows[0])
-        row1 = _Pair(_Float()).parse(f"{key}[1]", rows[1])
-        (a, b), (c, d) = row0, row1
-        # Scaled so that the 2x2 determinant cannot overflow for any finite entries.
-        s = max(abs(a), abs(b), abs(d))
-        if b != c or a <= 0.0 or (a / s) * (d / s) - (b / s) ** 2 <= 0.0:
-            raise ConfigError(key, "must be symmetric positive definite")
-        return _frozen([row0, row1], 2)
-
-    def dump(self, value: FloatArray) -> object:
-        return [[float(v) for v in row] for row in value]
-
-
-class _Components(_Kind[tuple[Any, ...]]):
+class _Components(Kind[tuple[Any, ...]]):
     """belief.components: an array of tables; `_belief` reads each table (see _COMPONENT_KEYS)."""
 
     doc = "array of tables {weight, mean, cov}"
 
     def parse(self, key: str, raw: object) -> tuple[Any, ...]:
-        items = _array_items(key, raw, "of tables {weight, mean, cov}")
+        items = array_items(key, raw, "of tables {weight, mean, cov}")
         for i, item in enumerate(items):
             if not isinstance(item, Mapping):
                 raise ConfigError(
-                    f"{key}[{i}]", f"must be a table {{weight, mean, cov}}, got {_describe(item)}"
+                    f"{key}[{i}]", f"must be a table {{weight, mean, cov}}, got {describe(item)}"
                 )
         return tuple(items)
 
@@ -517,221 +286,198 @@ class _Components(_Kind[tuple[Any, ...]]):
 # ---------------------------------------------------------------------------------------------
 
 
-class _Derived:
-    """Marks a default computed from other keys; `doc` says how."""
-
-    def __init__(self, doc: str) -> None:
-        self.doc = doc
-
-
-_REQUIRED = _Derived("required")
-
-
-@dataclass(frozen=True, slots=True)
-class _Key:
-    """One scenario key: TOML name (leaf), dataclass field, kind, default, doc."""
-
-    leaf: str
-    field: str
-    kind: _Kind[Any]
-    default: object
-    doc: str
-    project: bool = False  # the project's addition to scenario-format.md
-    stored: bool = True  # False: only shapes other fields (camera.hfov_deg), not written back
-
-
 _GP = GpParams()
 _DEFAULT_TARGET_COUNT = 10
 
-_TOP: tuple[_Key, ...] = (
-    _Key("name", "name", _Text(), _Derived("the file's name without `.toml`"), "scenario name"),
-    _Key("seed", "seed", _Int(ge=0), 0,
+_TOP: tuple[Key, ...] = (
+    Key("name", "name", Text(), Derived("the file's name without `.toml`"), "scenario name"),
+    Key("seed", "seed", Int(ge=0), 0,
          "the run is a pure function of (file, seed); --seed overrides"),
-    _Key("dt", "dt_s", _Float(gt=0), 1.0, "seconds per step"),
-    _Key("steps", "steps", _Int(ge=0), 0, "steps to run; 0 = until the planner's path ends"),
+    Key("dt", "dt_s", Float(gt=0), 1.0, "seconds per step"),
+    Key("steps", "steps", Int(ge=0), 0, "steps to run; 0 = until the planner's path ends"),
 )
 
-_SECTIONS: dict[str, tuple[_Key, ...]] = {
+_SECTIONS: dict[str, tuple[Key, ...]] = {
     "world": (
-        _Key("size", "size_m", _Pair(_Float(gt=0)), [150.0, 150.0], "metres, x by y"),
+        Key("size", "size_m", Pair(Float(gt=0)), [150.0, 150.0], "metres, x by y"),
     ),
     "targets": (
-        _Key("count", "count", _Int(ge=0),
-             _Derived(f"{_DEFAULT_TARGET_COUNT}, or the number of `positions`"),
+        Key("count", "count", Int(ge=0),
+             Derived(f"{_DEFAULT_TARGET_COUNT}, or the number of `positions`"),
              "targets placed uniformly at random in the world (from the seed)"),
-        _Key("positions", "positions_xy", _Points(), [],
+        Key("positions", "positions_xy", Points(), [],
              "explicit initial [[x, y], ...] instead of random"),
-        _Key("speed", "speed_m_s", _Float(ge=0), 0.0, "m/s; 0 = stationary"),
-        _Key("turn_every", "turn_every_steps", _Int(ge=1), 400,
+        Key("speed", "speed_m_s", Float(ge=0), 0.0, "m/s; 0 = stationary"),
+        Key("turn_every", "turn_every_steps", Int(ge=1), 400,
              "steps between random heading changes of moving targets"),
-        _Key("appear", "appear", _Rows("[step, x, y]", _Int(ge=0), _Float(), _Float()), [],
+        Key("appear", "appear", Rows("[step, x, y]", Int(ge=0), Float(), Float()), [],
              "targets that enter the world later"),
-        _Key("disappear", "disappear", _Rows("[step, index]", _Int(ge=0), _Int(ge=0)), [],
+        Key("disappear", "disappear", Rows("[step, index]", Int(ge=0), Int(ge=0)), [],
              "targets that leave; index counts initial targets, then appearing ones in order"),
-        _Key("tag_size_m", "tag_size_m", _Float(gt=0, le=10), 0.5,
+        Key("tag_size_m", "tag_size_m", Float(gt=0, le=10), 0.5,
              "SITL: edge of the black square of each target's tag36h11 AprilTag (target i wears "
              "tag id i), metres", project=True),
     ),
     "sensor": (
-        _Key("fov", "fov", _Choice("disk", "polygon", "camera"), "disk",
+        Key("fov", "fov", Choice("disk", "polygon", "camera"), "disk",
              "disk (the paper's), polygon, or camera (SITL only)"),
-        _Key("fov_radius", "fov_radius_m", _Float(gt=0), 25.0, "metres, for fov = \"disk\""),
-        _Key("fov_polygon", "fov_polygon_xy", _Points(), [],
+        Key("fov_radius", "fov_radius_m", Float(gt=0), 25.0, "metres, for fov = \"disk\""),
+        Key("fov_polygon", "fov_polygon_xy", Points(), [],
              "for fov = \"polygon\": convex [[dx, dy], ...] offsets from the robot, metres",
              project=True),
-        _Key("p_detect", "p_detect", _Float(ge=0, le=1), 0.98, "p(D | in FOV)"),
-        _Key("noise_std", "noise_std_m", _Float(gt=0), 1.0,
+        Key("p_detect", "p_detect", Float(ge=0, le=1), 0.98, "p(D | in FOV)"),
+        Key("noise_std", "noise_std_m", Float(gt=0), 1.0,
              "measurement noise std per axis, metres (R = noise_std^2 I)"),
-        _Key("clutter_prob", "clutter_prob", _Float(ge=0, le=1), 0.1,
+        Key("clutter_prob", "clutter_prob", Float(ge=0, le=1), 0.1,
              "probability of one false positive per step, uniform in the FOV"),
-        _Key("clutter_rate", "clutter_rate", _Float(ge=0), 0.0,
+        Key("clutter_rate", "clutter_rate", Float(ge=0), 0.0,
              "Poisson mean of further false positives per step"),
     ),
     "robot": (
-        _Key("start", "start_xy", _Pair(_Float()), [0.0, 0.0], "metres, inside the world"),
-        _Key("speed", "speed_m_s", _Float(gt=0), 0.5, "m/s"),
-        _Key("planner", "planner", _Choice("lawnmower", "nearest-gaussian", "largest-gaussian"),
+        Key("start", "start_xy", Pair(Float()), [0.0, 0.0], "metres, inside the world"),
+        Key("speed", "speed_m_s", Float(gt=0), 0.5, "m/s"),
+        Key("planner", "planner", Choice("lawnmower", "nearest-gaussian", "largest-gaussian"),
              "lawnmower", "path planner"),
-        _Key("lane_spacing", "lane_spacing_m", _Float(gt=0), 25.0,
+        Key("lane_spacing", "lane_spacing_m", Float(gt=0), 25.0,
              "metres between lawn-mower lanes"),
-        _Key("sweeps", "sweeps", _Int(ge=1), 3,
+        Key("sweeps", "sweeps", Int(ge=1), 3,
              "lawn-mower passes over the whole world, each returning to start"),
     ),
     "belief": (
-        _Key("kind", "kind", _Choice("exact", "under", "over", "empty", "explicit"), "exact",
+        Key("kind", "kind", Choice("exact", "under", "over", "empty", "explicit"), "exact",
              "how the initial GM-PHD is built"),
-        _Key("count", "count", _Int(ge=0), _Derived("`targets.count`"),
+        Key("count", "count", Int(ge=0), Derived("`targets.count`"),
              "components near true targets, for exact (= targets.count), under (<), over (>)"),
-        _Key("offset", "offset_m", _Float(ge=0), 15.0,
+        Key("offset", "offset_m", Float(ge=0), 15.0,
              "mean distance of each component from a true target, metres"),
-        _Key("variance", "variance_m2", _Float(gt=0), 50.0,
+        Key("variance", "variance_m2", Float(gt=0), 50.0,
              "diagonal covariance entry of each component, m^2"),
-        _Key("components", "components", _Components(), [],
+        Key("components", "components", _Components(), [],
              "for kind = \"explicit\": the initial components (keys below)"),
     ),
     "filter": (
-        _Key("p_survive", "p_survive", _Float(ge=0, le=1), 1.0, "survival probability p_S"),
-        _Key("push_rule", "push_rule", _Bool(), True, "the paper's limited-FOV update rule"),
-        _Key("push_band", "push_band", _Pair(_Float(ge=0, le=1), ordered=True), [0.4, 0.6],
+        Key("p_survive", "p_survive", Float(ge=0, le=1), 1.0, "survival probability p_S"),
+        Key("push_rule", "push_rule", Bool(), True, "the paper's limited-FOV update rule"),
+        Key("push_band", "push_band", Pair(Float(ge=0, le=1), ordered=True), [0.4, 0.6],
              "p_D band [lo, hi] in which the push rule acts"),
-        _Key("push_mode", "push_mode", _Choice("moment", "paper"), "moment",
+        Key("push_mode", "push_mode", Choice("moment", "paper"), "moment",
              "how the push rule moves a missed component: \"paper\" = Eq. push inside the band; "
              "\"moment\" = the mean and covariance of its exact no-detection posterior (any p_D)",
              project=True),
-        _Key("extract_weight", "extract_weight", _Float(gt=0), 0.5, "state extraction weight"),
-        _Key("confirm_length", "confirm_length", _Int(ge=1), 3,
+        Key("extract_weight", "extract_weight", Float(gt=0), 0.5, "state extraction weight"),
+        Key("confirm_length", "confirm_length", Int(ge=1), 3,
              "steps supported by a detection before a track is confirmed (l_threshold)"),
-        _Key("prune_weight", "prune_weight", _Float(ge=0), 0.001, "pruning weight"),
-        _Key("merge_distance", "merge_distance", _Float(ge=0), 10.0,
+        Key("prune_weight", "prune_weight", Float(ge=0), 0.001, "pruning weight"),
+        Key("merge_distance", "merge_distance", Float(ge=0), 10.0,
              "threshold on the SQUARED Mahalanobis distance (Vo & Ma's U); also the track gate"),
-        _Key("max_components", "max_components", _Int(ge=1), 100, "components kept after merging"),
-        _Key("motion", "motion", _Choice("gp", "linear"), "gp", "motion model of confirmed tracks"),
-        _Key("process_noise", "process_noise", _Float(ge=0), 0.01,
+        Key("max_components", "max_components", Int(ge=1), 100, "components kept after merging"),
+        Key("motion", "motion", Choice("gp", "linear"), "gp", "motion model of confirmed tracks"),
+        Key("process_noise", "process_noise", Float(ge=0), 0.01,
              "variance per step per axis of the linear model, m^2 (for \"cv\": acceleration "
              "spectral density times the step)"),
-        _Key("birth_weight", "birth_weight", _Float(gt=0), 1.0,
+        Key("birth_weight", "birth_weight", Float(gt=0), 1.0,
              "weight of a measurement-driven new component (the paper uses 1)"),
-        _Key("birth", "birth", _Choice("adaptive", "constant"), "adaptive",
+        Key("birth", "birth", Choice("adaptive", "constant"), "adaptive",
              "adaptive: the share of a measurement that clutter and the existing components do "
              "not explain (Ristic et al. 2012); constant: birth_weight (the paper)",
              project=True),
-        _Key("linear_model", "linear_model", _Choice("cp", "cv"), "cp",
+        Key("linear_model", "linear_model", Choice("cp", "cv"), "cp",
              "linear motion: constant position (random walk) or constant velocity", project=True),
-        _Key("velocity_variance", "velocity_variance", _Float(gt=0), 1.0,
+        Key("velocity_variance", "velocity_variance", Float(gt=0), 1.0,
              "velocity prior of a new component for linear_model = \"cv\", m^2/s^2", project=True),
-        _Key("gp_sigma_f", "gp_sigma_f", _Float(gt=0), _GP.sigma_f_m,
+        Key("gp_sigma_f", "gp_sigma_f", Float(gt=0), _GP.sigma_f_m,
              "GP signal std, metres", project=True),
-        _Key("gp_lengthscale", "gp_lengthscale", _Float(gt=0), _GP.lengthscale_s,
+        Key("gp_lengthscale", "gp_lengthscale", Float(gt=0), _GP.lengthscale_s,
              "GP kernel length scale, seconds", project=True),
-        _Key("gp_sigma_n", "gp_sigma_n", _Float(gt=0), _GP.sigma_n_m,
+        Key("gp_sigma_n", "gp_sigma_n", Float(gt=0), _GP.sigma_n_m,
              "GP observation noise std, metres", project=True),
-        _Key("gp_window", "gp_window", _Int(ge=2), _GP.window,
+        Key("gp_window", "gp_window", Int(ge=2), _GP.window,
              "a track's most recent detected positions the GP regresses on", project=True),
-        _Key("track_timeout", "track_timeout", _Float(gt=0), 30.0,
+        Key("track_timeout", "track_timeout", Float(gt=0), 30.0,
              "seconds without support before a confirmed track ends", project=True),
     ),
     "metrics": (
-        _Key("ospa_c", "ospa_c", _Float(gt=0), 100.0, "OSPA cut-off, metres"),
-        _Key("ospa_p", "ospa_p", _Float(ge=1), 2.0, "OSPA order"),
+        Key("ospa_c", "ospa_c", Float(gt=0), 100.0, "OSPA cut-off, metres"),
+        Key("ospa_p", "ospa_p", Float(ge=1), 2.0, "OSPA order"),
     ),
     "geo": (
-        _Key("origin", "origin",
-             _Floats("[lat, lon, alt]", _Float(ge=-90, le=90), _Float(ge=-180, le=180),
-                     _Float(ge=-500, le=9000)),
+        Key("origin", "origin",
+             Floats("[lat, lon, alt]", Float(ge=-90, le=90), Float(ge=-180, le=180),
+                     Float(ge=-500, le=9000)),
              [47.397742, 8.545594, 488.0],
              "WGS84 degrees and metres of the ground at the world's (0, 0) corner (default: PX4 "
              "SITL's home); the world's x runs east and y north from it"),
-        _Key("utm_epsg", "utm_epsg", _Int(), _Derived("the zone of the world's centre"),
+        Key("utm_epsg", "utm_epsg", Int(), Derived("the zone of the world's centre"),
              "EPSG code of the WGS84 / UTM zone the service's tracks and outputs use for the "
              "whole flight (326xx north, 327xx south)"),
     ),
     "camera": (
-        _Key("width_px", "width_px", _Int(ge=16), 640, "image width, pixels"),
-        _Key("height_px", "height_px", _Int(ge=16), 480, "image height, pixels"),
-        _Key("hfov_deg", "hfov_deg", _Float(ge=1, le=170), _Derived("90 unless fx_px is given"),
+        Key("width_px", "width_px", Int(ge=16), 640, "image width, pixels"),
+        Key("height_px", "height_px", Int(ge=16), 480, "image height, pixels"),
+        Key("hfov_deg", "hfov_deg", Float(ge=1, le=170), Derived("90 unless fx_px is given"),
              "horizontal field of view (square pixels): sets fx_px = fy_px", stored=False),
-        _Key("fx_px", "fx_px", _Float(gt=0), _Derived("from `camera.hfov_deg`"),
+        Key("fx_px", "fx_px", Float(gt=0), Derived("from `camera.hfov_deg`"),
              "focal length in x, pixels"),
-        _Key("fy_px", "fy_px", _Float(gt=0), _Derived("`camera.fx_px`"),
+        Key("fy_px", "fy_px", Float(gt=0), Derived("`camera.fx_px`"),
              "focal length in y, pixels"),
-        _Key("cx_px", "cx_px", _Float(), _Derived("the image centre, (width_px - 1) / 2"),
+        Key("cx_px", "cx_px", Float(), Derived("the image centre, (width_px - 1) / 2"),
              "principal point x, pixels (OpenCV: pixel centres at integers)"),
-        _Key("cy_px", "cy_px", _Float(), _Derived("the image centre, (height_px - 1) / 2"),
+        Key("cy_px", "cy_px", Float(), Derived("the image centre, (height_px - 1) / 2"),
              "principal point y, pixels"),
-        _Key("dist", "dist", _Floats("[k1, k2, p1, p2, k3]", *(_Float(),) * 5),
+        Key("dist", "dist", Floats("[k1, k2, p1, p2, k3]", *(Float(),) * 5),
              [0.0, 0.0, 0.0, 0.0, 0.0], "OpenCV distortion coefficients"),
-        _Key("mount_rpy_deg", "mount_rpy_deg", _Floats("[roll, pitch, yaw]", *(_Float(),) * 3),
+        Key("mount_rpy_deg", "mount_rpy_deg", Floats("[roll, pitch, yaw]", *(Float(),) * 3),
              [0.0, 0.0, 0.0],
              "mounting relative to straight down (top of the image forward), degrees; positive "
              "pitch looks ahead of nadir"),
-        _Key("mount_offset_m", "mount_offset_m",
-             _Floats("[forward, right, down]", *(_Float(ge=-10, le=10),) * 3), [0.0, 0.0, 0.0],
+        Key("mount_offset_m", "mount_offset_m",
+             Floats("[forward, right, down]", *(Float(ge=-10, le=10),) * 3), [0.0, 0.0, 0.0],
              "camera centre in the body frame, metres"),
-        _Key("rate_hz", "rate_hz", _Float(gt=0, le=1000), 10.0, "frames per second"),
-        _Key("noise_std", "noise_std", _Float(ge=0, le=64), 2.0,
+        Key("rate_hz", "rate_hz", Float(gt=0, le=1000), 10.0, "frames per second"),
+        Key("noise_std", "noise_std", Float(ge=0, le=64), 2.0,
              "SITL: exposure noise of the rendered frames, grey levels"),
     ),
     "vehicle": (
-        _Key("flavour", "flavour", _Choice("px4", "ardupilot"), "px4",
+        Key("flavour", "flavour", Choice("px4", "ardupilot"), "px4",
              "SITL autopilot: PX4 or ArduPilot Copter"),
-        _Key("altitude_m", "altitude_m", _Float(gt=0, le=500), 8.0,
+        Key("altitude_m", "altitude_m", Float(gt=0, le=500), 8.0,
              "search altitude above home, metres (the paper's field experiment: 8)"),
-        _Key("heading_deg", "heading_deg", _Float(ge=-360, le=360), 0.0,
+        Key("heading_deg", "heading_deg", Float(ge=-360, le=360), 0.0,
              "heading at boot and while searching, degrees clockwise from north"),
-        _Key("max_speed_m_s", "max_speed_m_s", _Float(gt=0), 8.0,
+        Key("max_speed_m_s", "max_speed_m_s", Float(gt=0), 8.0,
              "SITL: horizontal speed limit of the autopilot, m/s"),
-        _Key("max_accel_m_s2", "max_accel_m_s2", _Float(gt=0), 4.0,
+        Key("max_accel_m_s2", "max_accel_m_s2", Float(gt=0), 4.0,
              "SITL: acceleration limit, m/s^2 (it tilts the vehicle and its camera)"),
-        _Key("max_yaw_rate_deg_s", "max_yaw_rate_deg_s", _Float(gt=0), 60.0,
+        Key("max_yaw_rate_deg_s", "max_yaw_rate_deg_s", Float(gt=0), 60.0,
              "SITL: yaw-rate limit, degrees/s"),
-        _Key("takeoff_altitude_m", "takeoff_altitude_m", _Float(gt=0), 2.5,
+        Key("takeoff_altitude_m", "takeoff_altitude_m", Float(gt=0), 2.5,
              "SITL: the autopilot's default take-off altitude (PX4 MIS_TAKEOFF_ALT), metres"),
-        _Key("rtl_altitude_m", "rtl_altitude_m", _Float(gt=0), 30.0,
+        Key("rtl_altitude_m", "rtl_altitude_m", Float(gt=0), 30.0,
              "SITL: return altitude (PX4 RTL_RETURN_ALT), metres"),
-        _Key("offboard_loss_timeout_s", "offboard_loss_timeout_s", _Float(gt=0), 1.0,
+        Key("offboard_loss_timeout_s", "offboard_loss_timeout_s", Float(gt=0), 1.0,
              "SITL: setpoint silence before the offboard failsafe (PX4 COM_OF_LOSS_T), seconds"),
-        _Key("offboard_failsafe", "offboard_failsafe", _Choice("hold", "land", "rtl"), "hold",
+        Key("offboard_failsafe", "offboard_failsafe", Choice("hold", "land", "rtl"), "hold",
              "SITL: what PX4 does when offboard setpoints stop (COM_OBL_RC_ACT)"),
-        _Key("armable_after_s", "armable_after_s", _Float(ge=0), 2.0,
+        Key("armable_after_s", "armable_after_s", Float(ge=0), 2.0,
              "SITL: estimator settling after boot before arming is allowed, seconds"),
-        _Key("position_noise_m", "position_noise_m", _Float(ge=0), 0.0,
+        Key("position_noise_m", "position_noise_m", Float(ge=0), 0.0,
              "SITL: white noise on the reported position, metres per axis"),
-        _Key("gps_drift_m_per_sqrt_s", "gps_drift_m_per_sqrt_s", _Float(ge=0), 0.0,
+        Key("gps_drift_m_per_sqrt_s", "gps_drift_m_per_sqrt_s", Float(ge=0), 0.0,
              "SITL: random walk of the reported position, m/sqrt(s)"),
-        _Key("battery_flight_s", "battery_flight_s", _Float(gt=0), 1800.0,
+        Key("battery_flight_s", "battery_flight_s", Float(gt=0), 1800.0,
              "SITL: flight time on a full battery, seconds"),
-        _Key("battery_low_percent", "battery_low_percent", _Float(ge=0, le=100), 20.0,
+        Key("battery_low_percent", "battery_low_percent", Float(ge=0, le=100), 20.0,
              "SITL: battery level at which the autopilot returns home"),
-        _Key("ekf_origin_offset_m", "ekf_origin_offset_m", _Pair(_Float()), [4.0, -3.0],
+        Key("ekf_origin_offset_m", "ekf_origin_offset_m", Pair(Float()), [4.0, -3.0],
              "SITL, ArduPilot: EKF origin minus home, [north, east] metres (its local NED is "
              "about the EKF origin)"),
     ),
 }
 
-_COMPONENT_KEYS: tuple[_Key, ...] = (
-    _Key("weight", "weight", _Float(gt=0), 1.0, "weight of the component"),
-    _Key("mean", "mean_xy", _Pair(_Float()), _REQUIRED, "mean [x, y], metres"),
-    _Key("cov", "cov", _Matrix2(), _Derived("`belief.variance` times the identity"),
+_COMPONENT_KEYS: tuple[Key, ...] = (
+    Key("weight", "weight", Float(gt=0), 1.0, "weight of the component"),
+    Key("mean", "mean_xy", Pair(Float()), REQUIRED, "mean [x, y], metres"),
+    Key("cov", "cov", Matrix2(), Derived("`belief.variance` times the identity"),
          "covariance, m^2"),
 )
 
@@ -759,43 +505,13 @@ _CROSS_KEY_RULES = (
 # ---------------------------------------------------------------------------------------------
 
 
-def _join(prefix: str, leaf: str) -> str:
-    return f"{prefix}.{leaf}" if prefix else leaf
-
-
-def _unknown(key: str, leaf: str, known: Sequence[str]) -> ConfigError:
-    close = difflib.get_close_matches(leaf, known, n=1)
-    hint = f"did you mean {close[0]!r}? " if close else ""
-    return ConfigError(key, f"unknown key ({hint}known: {', '.join(known)})")
-
-
-def _read_table(table: Mapping[Any, Any], prefix: str, keys: Sequence[_Key]) -> dict[str, Any]:
-    """Field name -> checked value for each declared key (None for a derived default)."""
-    known = [k.leaf for k in keys]
-    for leaf in table:
-        if leaf not in known:
-            raise _unknown(_join(prefix, str(leaf)), str(leaf), known)
-    values: dict[str, Any] = {}
-    for k in keys:
-        key = _join(prefix, k.leaf)
-        if k.leaf in table:
-            values[k.field] = k.kind.parse(key, table[k.leaf])
-        elif k.default is _REQUIRED:
-            raise ConfigError(key, "is required")
-        elif isinstance(k.default, _Derived):
-            values[k.field] = None
-        else:
-            values[k.field] = k.kind.parse(key, k.default)
-    return values
-
-
 def _check_inside(key: str, x: float, y: float, world: WorldSpec, what: str = "") -> None:
     sx, sy = world.size_m
     if not (0.0 <= x <= sx and 0.0 <= y <= sy):
         raise ConfigError(
             key,
             f"{what}must be inside the world, 0 <= x <= {sx!r} and 0 <= y <= {sy!r}, "
-            f"got {_toml([x, y])}",
+            f"got {toml_text([x, y])}",
         )
 
 
@@ -863,7 +579,7 @@ def _convex_ccw(key: str, points: FloatArray) -> FloatArray:
         raise ConfigError(
             key, "must be convex, with its vertices in order and none repeated or collinear"
         )
-    return _frozen(points.tolist(), 2)
+    return frozen_rows(points.tolist(), 2)
 
 
 _FOOTPRINT_MAX_RANGE_M = 10_000.0
@@ -896,7 +612,7 @@ def _sensor(v: dict[str, Any], camera: CameraModel, vehicle: VehicleSpec) -> Sen
     elif polygon.shape[0]:
         raise ConfigError(
             "sensor.fov_polygon",
-            f'is only allowed when sensor.fov = "polygon", got fov {_toml(v["fov"])}',
+            f'is only allowed when sensor.fov = "polygon", got fov {toml_text(v["fov"])}',
         )
     return SensorSpec(**v)
 
@@ -939,7 +655,7 @@ def _belief(v: dict[str, Any], n_targets: int) -> BeliefSpec:
         raise ConfigError(
             "belief.count",
             f"must {rules[v['kind']][0]} the number of initial targets ({n_targets}) for "
-            f"belief.kind = {_toml(v['kind'])}, got {count}",
+            f"belief.kind = {toml_text(v['kind'])}, got {count}",
         )
     tables: tuple[Mapping[Any, Any], ...] = v["components"]
     if v["kind"] == "explicit" and not tables:
@@ -947,40 +663,33 @@ def _belief(v: dict[str, Any], n_targets: int) -> BeliefSpec:
     if v["kind"] != "explicit" and tables:
         raise ConfigError(
             "belief.components",
-            f'is only allowed when belief.kind = "explicit", got kind {_toml(v["kind"])}',
+            f'is only allowed when belief.kind = "explicit", got kind {toml_text(v["kind"])}',
         )
     components = []
     for i, table in enumerate(tables):
-        c = _read_table(table, f"belief.components[{i}]", _COMPONENT_KEYS)
+        c = read_table(table, f"belief.components[{i}]", _COMPONENT_KEYS)
         if c["cov"] is None:
-            c["cov"] = _frozen((np.eye(2) * v["variance_m2"]).tolist(), 2)
+            c["cov"] = frozen_rows((np.eye(2) * v["variance_m2"]).tolist(), 2)
         components.append(BeliefComponent(**c))
     v["components"] = tuple(components)
     return BeliefSpec(**v)
 
 
-def _section_table(data: Mapping[Any, Any], section: str) -> Mapping[Any, Any]:
-    table = data.get(section, {})
-    if not isinstance(table, Mapping):
-        raise ConfigError(section, f"must be a table, got {_describe(table)}")
-    return table
-
-
 def parse_scenario(data: Mapping[str, Any], name: str = "scenario") -> Scenario:
     """The Scenario described by TOML data (`name` when it has no name key); ConfigError if bad."""
     if not isinstance(data, Mapping):
-        raise ConfigError(name, f"must be a table of scenario keys, got {_describe(data)}")
+        raise ConfigError(name, f"must be a table of scenario keys, got {describe(data)}")
     top_known = [k.leaf for k in _TOP] + list(_SECTIONS)
     for key in data:
         if key not in top_known:
-            raise _unknown(str(key), str(key), top_known)
-    top = _read_table({k: data[k] for k in data if k not in _SECTIONS}, "", _TOP)
+            raise unknown_key(str(key), str(key), top_known)
+    top = read_table({k: data[k] for k in data if k not in _SECTIONS}, "", _TOP)
     if top["name"] is None:
-        top["name"] = _Text().parse("name", name)
-    world = WorldSpec(**_read_table(_section_table(data, "world"), "world", _SECTIONS["world"]))
+        top["name"] = Text().parse("name", name)
+    world = WorldSpec(**read_table(section_table(data, "world"), "world", _SECTIONS["world"]))
 
     def read(section: str) -> dict[str, Any]:
-        return _read_table(_section_table(data, section), section, _SECTIONS[section])
+        return read_table(section_table(data, section), section, _SECTIONS[section])
 
     targets = _targets(read("targets"), world)
     camera = _camera(read("camera"))
@@ -1003,24 +712,14 @@ def parse_scenario(data: Mapping[str, Any], name: str = "scenario") -> Scenario:
 def load_scenario(path: str | Path, seed: int | None = None) -> Scenario:
     """The Scenario in a TOML file, `seed` (when given) replacing the file's; ConfigError if bad."""
     p = Path(path)
-    try:
-        with p.open("rb") as fh:
-            data = tomllib.load(fh)
-    except FileNotFoundError as exc:
-        raise ConfigError(str(p), "no such scenario file") from exc
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(str(p), f"invalid TOML: {exc}") from exc
-    except UnicodeDecodeError as exc:
-        raise ConfigError(str(p), f"invalid TOML: not UTF-8 text (byte {exc.start})") from exc
-    except OSError as exc:
-        raise ConfigError(str(p), f"cannot read the file: {exc.strerror or exc}") from exc
+    data = load_toml(p, "scenario")
     scenario = parse_scenario(data, name=p.stem)
     if seed is not None:
-        scenario = dataclasses.replace(scenario, seed=_Int(ge=0).parse("seed", seed))
+        scenario = dataclasses.replace(scenario, seed=Int(ge=0).parse("seed", seed))
     return scenario
 
 
-def _dump_table(spec: object, keys: Sequence[_Key]) -> dict[str, Any]:
+def _dump_table(spec: object, keys: Sequence[Key]) -> dict[str, Any]:
     return {k.leaf: k.kind.dump(getattr(spec, k.field)) for k in keys if k.stored}
 
 
@@ -1035,16 +734,6 @@ def scenario_to_dict(s: Scenario) -> dict[str, Any]:
 # ---------------------------------------------------------------------------------------------
 # The generated key reference
 # ---------------------------------------------------------------------------------------------
-
-
-def _markdown_rows(prefix: str, keys: Sequence[_Key]) -> list[str]:
-    lines = ["| key | type | default | meaning |", "|---|---|---|---|"]
-    for k in keys:
-        default = k.default.doc if isinstance(k.default, _Derived) else f"`{_toml(k.default)}`"
-        origin = " *(project key)*" if k.project else ""
-        cells = (f"`{_join(prefix, k.leaf)}`", k.kind.doc, default, k.doc + origin)
-        lines.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
-    return lines
 
 
 def schema_markdown() -> str:
@@ -1076,17 +765,17 @@ def schema_markdown() -> str:
         "",
         "## Top level",
         "",
-        *_markdown_rows("", _TOP),
+        *markdown_rows("", _TOP),
     ]
     for section, keys in _SECTIONS.items():
-        lines += ["", f"## `[{section}]`", "", *_markdown_rows(section, keys)]
+        lines += ["", f"## `[{section}]`", "", *markdown_rows(section, keys)]
     lines += [
         "",
         "### `belief.components[i]`",
         "",
         "Each entry of `belief.components` is a table with these keys:",
         "",
-        *_markdown_rows("belief.components[i]", _COMPONENT_KEYS),
+        *markdown_rows("belief.components[i]", _COMPONENT_KEYS),
         "",
         "## Rules across keys",
         "",
