@@ -84,6 +84,17 @@ def _learn_gp(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _check_config(args: argparse.Namespace) -> int:
+    from companion.config import load_config
+
+    config = load_config(args.config)
+    s = config.search
+    print(f"{args.config}: ok (vehicle {config.vehicle.connection}, camera "
+          f"{config.camera.source}, search area of {s.area_latlon.shape[0]} vertices in "
+          f"EPSG:{s.utm_epsg} at {s.altitude_m:g} m, reports to {config.output.dir})")
+    return EXIT_OK
+
+
 def _positive_int(text: str) -> int:
     value = int(text)
     if value < 1:
@@ -123,6 +134,10 @@ def build_parser() -> argparse.ArgumentParser:
     learn.add_argument("--steps", type=_positive_int, default=1200, help="steps per trajectory")
     learn.add_argument("--seed", type=int, default=1000, help="seed of the training set")
     learn.set_defaults(run=_learn_gp)
+
+    check = sub.add_parser("check-config", help="validate a service configuration file and exit")
+    check.add_argument("config", type=Path, help="the service's TOML configuration")
+    check.set_defaults(run=_check_config)
     return parser
 
 

@@ -220,7 +220,8 @@ def frozen_rows(rows: Sequence[Sequence[float]], ncols: int) -> FloatArray:
 class Points(Kind[FloatArray]):
     """An array of [x, y] points, returned as a read-only (n, 2) array."""
 
-    doc = "array of [x, y] (metres)"
+    def __init__(self, doc: str = "array of [x, y] (metres)") -> None:
+        self.doc = doc
 
     def parse(self, key: str, raw: object) -> FloatArray:
         pair = Pair(Float())
@@ -229,6 +230,21 @@ class Points(Kind[FloatArray]):
 
     def dump(self, value: FloatArray) -> object:
         return [[float(x), float(y)] for x, y in value]
+
+
+class Ints(Kind[tuple[int, ...]]):
+    """An array of integers, each >= ge."""
+
+    def __init__(self, ge: int = 0) -> None:
+        self.item = Int(ge=ge)
+        self.doc = f"array of integers >= {ge}"
+
+    def parse(self, key: str, raw: object) -> tuple[int, ...]:
+        items = array_items(key, raw, "of integers")
+        return tuple(self.item.parse(f"{key}[{i}]", v) for i, v in enumerate(items))
+
+    def dump(self, value: tuple[int, ...]) -> object:
+        return list(value)
 
 
 class Rows(Kind[tuple[tuple[Any, ...], ...]]):

@@ -33,7 +33,7 @@ from companion.sat.predict import LinearModel
 from companion.sat.tracks import TrackParams
 from companion.sat.update import PushMode, PushRule
 from companion.sim.belief import initial_belief
-from companion.sim.scenario import Scenario
+from companion.sim.scenario import FilterSpec, Scenario
 from companion.sim.sensor import SensorModel, sense
 from companion.sim.truth import Truth, advance_truth, initial_truth
 
@@ -43,11 +43,16 @@ Progress = Callable[[int, int], None]
 
 def filter_params(s: Scenario) -> SatParams:
     """The filter's parameters from a scenario's [filter] and [sensor] tables."""
-    f = s.filter
+    return sat_params(s.filter, s.sensor.p_detect, s.sensor.clutter_prob + s.sensor.clutter_rate,
+                      s.dt_s)
+
+
+def sat_params(f: FilterSpec, p_detect: float, clutter_per_scan: float, dt_s: float) -> SatParams:
+    """The filter's parameters from a [filter] table, p(D|F), clutter and the step length."""
     return SatParams(
         p_survive=f.p_survive,
-        p_detect=s.sensor.p_detect,
-        clutter_per_scan=s.sensor.clutter_prob + s.sensor.clutter_rate,
+        p_detect=p_detect,
+        clutter_per_scan=clutter_per_scan,
         push=PushRule(*f.push_band, PushMode(f.push_mode)) if f.push_rule else None,
         extract_weight=f.extract_weight,
         prune_weight=f.prune_weight,
@@ -55,7 +60,7 @@ def filter_params(s: Scenario) -> SatParams:
         max_components=f.max_components,
         use_gp=f.motion == "gp",
         linear_model=LinearModel(f.linear_model),
-        q_m2_per_s=f.process_noise / s.dt_s,
+        q_m2_per_s=f.process_noise / dt_s,
         birth=BirthWeight(f.birth),
         birth_weight=f.birth_weight,
         velocity_var_m2_s2=f.velocity_variance,

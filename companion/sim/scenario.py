@@ -58,6 +58,7 @@ from companion.sat.gp import GpParams
 from companion.vision.camera import BodyPose, CameraModel, ground_footprint
 
 __all__ = [
+    "FILTER_KEYS",
     "BeliefComponent",
     "BeliefSpec",
     "FilterSpec",
@@ -480,6 +481,8 @@ _COMPONENT_KEYS: tuple[Key, ...] = (
     Key("cov", "cov", Matrix2(), Derived("`belief.variance` times the identity"),
          "covariance, m^2"),
 )
+
+FILTER_KEYS = _SECTIONS["filter"]  # the service configuration's [filter] table is the same
 
 _CROSS_KEY_RULES = (
     "`targets.positions` given: `targets.count` must equal its length or be omitted.",

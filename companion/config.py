@@ -1,0 +1,401 @@
+"""The service's configuration file (TOML), validated in full before anything starts.
+
+Every key is declared once in `SECTIONS` (kind and range, default, one-line doc), as the scenario
+keys are. `load_config` returns a frozen `ServiceConfig` or raises `ConfigError` naming the first
+bad key and the reason. `companion check-config FILE` and `companion run` use it, and
+`docs/configuration.md` is generated from the declarations
+(`python -m companion.config --markdown`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.errors import ConfigError
+from companion.geo import Utm, utm_zone_for
+from companion.keys import (
+    REQUIRED,
+    Bool,
+    Choice,
+    Derived,
+    Float,
+    Floats,
+    Int,
+    Ints,
+    Key,
+    Points,
+    Text,
+    load_toml,
+    markdown_rows,
+    read_table,
+    section_table,
+    unknown_key,
+)
+from companion.sim.scenario import FILTER_KEYS, FilterSpec
+
+__all__ = ["ServiceConfig", "load_config", "parse_config", "schema_markdown"]
+
+FloatArray = NDArray[np.float64]
+FAMILIES = ("tag36h11", "tag25h9", "tag16h5", "tagCircle21h7", "tagCircle49h12",
+            "tagStandard41h12", "tagStandard52h13", "tagCustom48h12")
+_ANGLE = Float(ge=-180.0, le=180.0)
+_OFFSET = Float(ge=-10.0, le=10.0)
+_LAT_LON = "array of [lat, lon] (WGS84 degrees)"
+
+
+@dataclass(frozen=True, slots=True)
+class VehicleConfig:
+    """How to reach the autopilot."""
+
+    connection: str
+    connect_timeout_s: float
+    telemetry_rate_hz: float
+
+
+@dataclass(frozen=True, slots=True)
+class CameraConfig:
+    """The camera: where frames come from, its intrinsics and how it is mounted."""
+
+    source: str
+    kind: Literal["auto", "opencv", "mjpeg"]
+    calibration: str | None
+    width_px: int
+    height_px: int
+    hfov_deg: float
+    mount_rpy_deg: tuple[float, float, float]
+    mount_offset_m: tuple[float, float, float]
+    latency_s: float
+
+
+@dataclass(frozen=True, slots=True)
+class DetectorConfig:
+    """pupil-apriltags' settings and which detections to keep."""
+
+    family: str
+    decimate: float
+    threads: int
+    min_decision_margin: float
+    allowed_ids: tuple[int, ...]
+    pixel_std_px: float
+
+
+@dataclass(frozen=True, slots=True)
+class PoseConfig:
+    """How much to trust the autopilot's pose (propagated into each measurement's covariance)."""
+
+    horizontal_std_m: float
+    vertical_std_m: float
+    attitude_std_deg: float
+    heading_std_deg: float
+    max_gap_s: float
+
+
+@dataclass(frozen=True, slots=True)
+class EstimatorConfig:
+    """When and how the GM-PHD steps."""
+
+    rate_hz: float
+    p_detect: float
+    clutter_per_scan: float
+    fov: Literal["camera", "disk"]
+    fov_radius_m: float
+    footprint_margin_m: float
+    max_range_m: float
+
+
+@dataclass(frozen=True, slots=True)
+class SearchConfig:
+    """Where to search and how to fly over it."""
+
+    area_latlon: FloatArray  # (k, 2) [lat, lon] polygon
+    utm_epsg: int
+    altitude_m: float  # above home
+    speed_m_s: float
+    planner: Literal["lawnmower", "nearest-gaussian", "largest-gaussian"]
+    lane_spacing_m: float
+    sweeps: int
+    heading_deg: float
+    expected_targets: int | None
+
+
+@dataclass(frozen=True, slots=True)
+class SafetyConfig:
+    """The gate every setpoint passes."""
+
+    geofence_latlon: FloatArray  # (k, 2) [lat, lon] polygon
+    min_alt_m: float
+    max_alt_m: float
+    max_speed_h_m_s: float
+    max_speed_v_m_s: float
+
+
+@dataclass(frozen=True, slots=True)
+class MissionConfig:
+    """What the service may do by itself, and when the mission ends."""
+
+    auto_arm_takeoff: bool
+    auto_offboard: bool
+    resume_on_pilot_offboard: bool
+    end: Literal["covered", "targets", "time"]
+    time_limit_s: float
+    end_action: Literal["hold", "land", "rtl"]
+    setpoint_rate_hz: float
+
+
+@dataclass(frozen=True, slots=True)
+class OutputConfig:
+    """Where the run's reports go."""
+
+    dir: str
+    plots: bool
+
+
+@dataclass(frozen=True, slots=True)
+class ServiceConfig:
+    """The whole configuration."""
+
+    vehicle: VehicleConfig
+    camera: CameraConfig
+    detector: DetectorConfig
+    pose: PoseConfig
+    estimator: EstimatorConfig
+    filter: FilterSpec
+    search: SearchConfig
+    safety: SafetyConfig
+    mission: MissionConfig
+    output: OutputConfig
+
+
+SECTIONS: dict[str, tuple[Key, ...]] = {
+    "vehicle": (
+        Key("connection", "connection", Text(), "udpin://127.0.0.1:14540",
+            "MAVSDK connection URL: udpin://HOST:PORT, tcpout://HOST:PORT, "
+            "serial:///dev/ttyAMA0:921600"),
+        Key("connect_timeout_s", "connect_timeout_s", Float(gt=0), 30.0,
+            "seconds to wait for the autopilot's heartbeat"),
+        Key("telemetry_rate_hz", "telemetry_rate_hz", Float(gt=0, le=200), 20.0,
+            "rate asked for position and attitude (an ArduPilot sends nothing unasked)"),
+    ),
+    "camera": (
+        Key("source", "source", Text(), REQUIRED,
+            "what cv2.VideoCapture opens (device index, /dev/videoN, GStreamer pipeline, "
+            "rtsp:// or http:// URL, video file) or the SITL's MJPEG URL"),
+        Key("kind", "kind", Choice("auto", "opencv", "mjpeg"), "auto",
+            "how to read the source; auto: mjpeg for .../stream.mjpg URLs, else OpenCV"),
+        Key("calibration", "calibration", Text(), Derived("none: width_px, height_px, hfov_deg"),
+            "OpenCV calibration file (YAML/XML: image_width, image_height, camera_matrix, "
+            "distortion_coefficients); relative to this file"),
+        Key("width_px", "width_px", Int(ge=16), 640, "image width without a calibration file"),
+        Key("height_px", "height_px", Int(ge=16), 480, "image height without a calibration file"),
+        Key("hfov_deg", "hfov_deg", Float(ge=1, le=170), 90.0,
+            "horizontal field of view without a calibration file (no distortion)"),
+        Key("mount_rpy_deg", "mount_rpy_deg", Floats("[roll, pitch, yaw]", _ANGLE, _ANGLE, _ANGLE),
+            [0.0, 0.0, 0.0], "mounting relative to straight down, top of the image forward"),
+        Key("mount_offset_m", "mount_offset_m",
+            Floats("[forward, right, down]", _OFFSET, _OFFSET, _OFFSET), [0.0, 0.0, 0.0],
+            "camera centre in the body frame, metres"),
+        Key("latency_s", "latency_s", Float(ge=0, le=5), 0.0,
+            "exposure-to-receipt delay of a source without capture times"),
+    ),
+    "detector": (
+        Key("family", "family", Choice(*FAMILIES), "tag36h11", "AprilTag family"),
+        Key("decimate", "decimate", Float(ge=1, le=8), 1.0,
+            "quad_decimate: faster, but small tags are lost (see docs/sitl.md)"),
+        Key("threads", "threads", Int(ge=1), 2, "detector threads"),
+        Key("min_decision_margin", "min_decision_margin", Float(ge=0), 20.0,
+            "detections with a lower decision margin are dropped"),
+        Key("allowed_ids", "allowed_ids", Ints(ge=0), [],
+            "keep only these tag ids (empty: all); ids never reach the estimator"),
+        Key("pixel_std_px", "pixel_std_px", Float(gt=0, le=50), 1.0,
+            "standard deviation of a detected tag centre, pixels"),
+    ),
+    "pose": (
+        Key("horizontal_std_m", "horizontal_std_m", Float(ge=0, le=100), 0.5,
+            "standard deviation of the autopilot's horizontal position"),
+        Key("vertical_std_m", "vertical_std_m", Float(ge=0, le=100), 0.3,
+            "standard deviation of the height above the ground"),
+        Key("attitude_std_deg", "attitude_std_deg", Float(ge=0, le=30), 1.0,
+            "standard deviation of roll and pitch"),
+        Key("heading_std_deg", "heading_std_deg", Float(ge=0, le=90), 2.0,
+            "standard deviation of the heading"),
+        Key("max_gap_s", "max_gap_s", Float(gt=0, le=10), 0.5,
+            "a frame whose capture time falls in a longer gap of telemetry has no pose"),
+    ),
+    "estimator": (
+        Key("rate_hz", "rate_hz", Float(gt=0, le=30), 2.0,
+            "estimator steps per second, each on the newest frame (the others are dropped)"),
+        Key("p_detect", "p_detect", Float(ge=0, le=1), 0.95, "p(D | in the footprint)"),
+        Key("clutter_per_scan", "clutter_per_scan", Float(ge=0), 0.1,
+            "expected false detections per step"),
+        Key("fov", "fov", Choice("camera", "disk"), "camera",
+            "sensing region: the camera footprint this frame covered, or the paper's disk"),
+        Key("fov_radius_m", "fov_radius_m", Float(gt=0), 6.0, "disk radius for fov = \"disk\""),
+        Key("footprint_margin_m", "footprint_margin_m", Float(ge=0, le=10), 0.3,
+            "the footprint shrunk by this much: a tag cut by the image edge is not detected"),
+        Key("max_range_m", "max_range_m", Float(gt=0), 100.0,
+            "ground points farther than this from the vehicle are out of the footprint"),
+    ),
+    "filter": FILTER_KEYS,
+    "search": (
+        Key("area", "area_latlon", Points(_LAT_LON), REQUIRED,
+            "the search area polygon; the lawn mower covers its bounding box"),
+        Key("utm_epsg", "utm_epsg", Int(ge=0), Derived("the UTM zone of the area's centre"),
+            "EPSG code of the UTM zone for the whole flight (326xx north, 327xx south)"),
+        Key("altitude_m", "altitude_m", Float(gt=0, le=500), 8.0, "search altitude above home"),
+        Key("speed_m_s", "speed_m_s", Float(gt=0, le=30), 1.0, "search speed"),
+        Key("planner", "planner", Choice("lawnmower", "nearest-gaussian", "largest-gaussian"),
+            "lawnmower", "path planner"),
+        Key("lane_spacing_m", "lane_spacing_m", Float(gt=0), 8.0, "lawn-mower lane spacing"),
+        Key("sweeps", "sweeps", Int(ge=1), 1, "lawn-mower passes over the area"),
+        Key("heading_deg", "heading_deg", _ANGLE, 0.0, "yaw held while searching"),
+        Key("expected_targets", "expected_targets", Int(ge=1), Derived("unknown"),
+            "targets to confirm before mission.end = \"targets\" ends the mission"),
+    ),
+    "safety": (
+        Key("geofence", "geofence_latlon", Points(_LAT_LON), Derived("the search area"),
+            "no setpoint leaves this polygon"),
+        Key("min_alt_m", "min_alt_m", Float(gt=0), 2.0, "lowest setpoint above home"),
+        Key("max_alt_m", "max_alt_m", Float(gt=0), 30.0, "highest setpoint above home"),
+        Key("max_speed_h_m_s", "max_speed_h_m_s", Float(gt=0, le=30), 3.0,
+            "setpoints move at most this fast horizontally"),
+        Key("max_speed_v_m_s", "max_speed_v_m_s", Float(gt=0, le=10), 1.0,
+            "setpoints move at most this fast vertically"),
+    ),
+    "mission": (
+        Key("auto_arm_takeoff", "auto_arm_takeoff", Bool(), False,
+            "arm and take off by itself (default: the pilot does)"),
+        Key("auto_offboard", "auto_offboard", Bool(), False,
+            "enter OFFBOARD by itself once, when ready (default: the pilot selects it)"),
+        Key("resume_on_pilot_offboard", "resume_on_pilot_offboard", Bool(), True,
+            "after a pilot takeover, resume when the pilot selects OFFBOARD again"),
+        Key("end", "end", Choice("covered", "targets", "time"), "covered",
+            "the mission ends when the lawn mower is done, expected targets are confirmed, or "
+            "at the time limit (the time limit always applies)"),
+        Key("time_limit_s", "time_limit_s", Float(gt=0), 900.0, "longest search"),
+        Key("end_action", "end_action", Choice("hold", "land", "rtl"), "land",
+            "what to ask the autopilot at the end"),
+        Key("setpoint_rate_hz", "setpoint_rate_hz", Float(gt=2, le=50), 10.0,
+            "setpoint stream rate (PX4 needs more than 2 Hz)"),
+    ),
+    "output": (
+        Key("dir", "dir", Text(), "runs", "folder for the run's reports; relative to this file"),
+        Key("plots", "plots", Bool(), True, "write the study's plots at the end"),
+    ),
+}
+
+
+def _latlon_polygon(key: str, points: FloatArray) -> FloatArray:
+    if points.shape[0] < 3:
+        raise ConfigError(key, f"must have at least 3 [lat, lon] vertices, got {points.shape[0]}")
+    if not (np.all(np.abs(points[:, 0]) <= 90.0) and np.all(np.abs(points[:, 1]) <= 180.0)):
+        raise ConfigError(key, "latitudes must be in [-90, 90] and longitudes in [-180, 180]; "
+                               "write [lat, lon] pairs")
+    return points
+
+
+def _relative(base: Path | None, path: str) -> str:
+    p = Path(path)
+    return str(p if p.is_absolute() or base is None else base / p)
+
+
+def parse_config(data: Mapping[str, Any], base: Path | None = None) -> ServiceConfig:
+    """The ServiceConfig of TOML data (relative paths against base); ConfigError names a bad key."""
+    if not isinstance(data, Mapping):
+        raise ConfigError("config", "must be a table of sections")
+    for section in data:
+        if section not in SECTIONS:
+            raise unknown_key(str(section), str(section), list(SECTIONS))
+
+    def read(section: str) -> dict[str, Any]:
+        return read_table(section_table(data, section), section, SECTIONS[section])
+
+    camera = read("camera")
+    if camera["calibration"] is not None:
+        camera["calibration"] = _relative(base, camera["calibration"])
+    search = read("search")
+    area = _latlon_polygon("search.area", search["area_latlon"])
+    if search["utm_epsg"] is None:
+        lat, lon = area.mean(axis=0)
+        search["utm_epsg"] = utm_zone_for(float(lat), float(lon))
+    Utm(search["utm_epsg"])  # checks the code
+    safety = read("safety")
+    if safety["geofence_latlon"] is None:
+        safety["geofence_latlon"] = area
+    _latlon_polygon("safety.geofence", safety["geofence_latlon"])
+    low_m, high_m = safety["min_alt_m"], safety["max_alt_m"]
+    if low_m >= high_m:
+        raise ConfigError("safety.max_alt_m",
+                          f"must be above safety.min_alt_m ({low_m!r}), got {high_m!r}")
+    if not low_m <= search["altitude_m"] <= high_m:
+        raise ConfigError("search.altitude_m", f"must lie in the safety band [{low_m!r}, "
+                                               f"{high_m!r}], got {search['altitude_m']!r}")
+    mission = read("mission")
+    if mission["end"] == "targets" and search["expected_targets"] is None:
+        raise ConfigError("search.expected_targets", "is required when mission.end = \"targets\"")
+    output = read("output")
+    output["dir"] = _relative(base, output["dir"])
+    return ServiceConfig(
+        vehicle=VehicleConfig(**read("vehicle")),
+        camera=CameraConfig(**camera),
+        detector=DetectorConfig(**read("detector")),
+        pose=PoseConfig(**read("pose")),
+        estimator=EstimatorConfig(**read("estimator")),
+        filter=FilterSpec(**read("filter")),
+        search=SearchConfig(**search),
+        safety=SafetyConfig(**safety),
+        mission=MissionConfig(**mission),
+        output=OutputConfig(**output),
+    )
+
+
+def load_config(path: str | Path) -> ServiceConfig:
+    """The configuration in a TOML file; ConfigError names the file or the bad key."""
+    p = Path(path)
+    return parse_config(load_toml(p, "configuration"), base=p.parent)
+
+
+def schema_markdown() -> str:
+    """The configuration reference (docs/configuration.md), generated from the declarations."""
+    lines = [
+        "# Service configuration keys",
+        "",
+        "<!-- Generated by `python -m companion.config --markdown > docs/configuration.md`;",
+        "     edit the declarations in companion/config.py, not this file. -->",
+        "",
+        "One TOML file configures `companion run` (`companion check-config FILE` checks it).",
+        "Every key is optional unless its default says required; an unknown key, a wrong type or",
+        "an out-of-range value stops the start with a message naming the key (exit status 2).",
+        "Examples: `systemd/companion.toml` (a real vehicle), `sitl/service.toml` (the SITL).",
+        "The `[filter]` table has the same keys as a scenario's (`docs/scenario.md`).",
+    ]
+    for section, keys in SECTIONS.items():
+        if section == "filter":
+            continue
+        lines += ["", f"## `[{section}]`", "", *markdown_rows(section, keys)]
+    lines += ["", "Cross-key rules: `safety.min_alt_m` < `safety.max_alt_m`; `search.altitude_m` "
+              "inside that band; `mission.end = \"targets\"` needs `search.expected_targets`; "
+              "polygons need at least 3 [lat, lon] vertices.", ""]
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """`python -m companion.config --markdown` prints the key reference."""
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--markdown", action="store_true", help="print the key reference")
+    args = parser.parse_args(argv)
+    if args.markdown:
+        sys.stdout.write(schema_markdown())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
+
