@@ -7,8 +7,9 @@ its ATTITUDE/LOCAL_POSITION_NED `time_boot_ms`), so a reader pairs each frame wi
 interpolated at that instant.
 
 Two ways to consume the stream, one code path in the service:
-- `MjpegReader(url)`: the frame-source plug-in for this stream. It yields
-  `(image, capture_time_s)` with the capture time from the header.
+- `MjpegReader(url)` (from `companion.camera.mjpeg`, re-exported here): yields
+  `(image, capture_time_s)` with the capture time from the header; the service reads it through
+  `companion.camera.source.MjpegSource`.
 - `cv2.VideoCapture(url)`: opens the same URL through OpenCV's FFmpeg backend and decodes the
   frames (as BGR), as it would a real IP camera; it cannot see the part headers, so frames read
   that way have no capture time (only a receive time).
@@ -17,11 +18,9 @@ Two ways to consume the stream, one code path in the service:
 from __future__ import annotations
 
 import contextlib
-import http.client
 import math
 import socket
 import threading
-from collections.abc import Iterator
 from dataclasses import dataclass
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from types import TracebackType
@@ -32,11 +31,11 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.camera.mjpeg import CAPTURE_TIME_HEADER, MjpegReader
 from companion.errors import ConfigError, InputError
 
 __all__ = ["CAPTURE_TIME_HEADER", "MjpegReader", "MjpegServer"]
 
-CAPTURE_TIME_HEADER = "X-Capture-Time-Us"
 BOUNDARY = "frame"
 
 # A client whose socket accepts nothing for this long is dropped: long enough for a loaded
@@ -283,146 +282,3 @@ class MjpegServer:
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  tb: TracebackType | None) -> None:
         self.stop()
-
-
-class MjpegReader:
-    """The frame-source plug-in for the SITL stream: yields (image, capture_time_s).
-
-    Reads `/stream.mjpg` of an MjpegServer (or any multipart MJPEG stream whose parts carry
-    X-Capture-Time-Us) with the stdlib. Images come back as the JPEG holds them: (H, W) uint8
-    for the SITL's grayscale frames. Parts whose JPEG does not decode are skipped and counted
-    in `corrupt_frames`. A malformed stream raises InputError; a refused or timed-out
-    connection raises the OSError (ConnectionError, TimeoutError) from the socket.
-    Iteration ends when the server closes the stream.
-    """
-
-    def __init__(self, url: str, timeout_s: float = 5.0) -> None:
-        parts = urlsplit(url)
-        if parts.scheme != "http" or not parts.hostname:
-            raise ConfigError("camera.url", f"must be an http:// URL, got {url!r}")
-        if not isinstance(timeout_s, int | float) or not 0.0 < timeout_s < math.inf:
-            raise ConfigError("camera.timeout_s", f"must be a number > 0, got {timeout_s!r}")
-        self.url = url
-        self.timeout_s = float(timeout_s)
-        self.corrupt_frames = 0
-        self._host = parts.hostname
-        self._port = parts.port or 80
-        self._path = (parts.path or "/") + (f"?{parts.query}" if parts.query else "")
-        self._sock: socket.socket | None = None
-
-    def __iter__(self) -> Iterator[tuple[NDArray[np.uint8], float]]:
-        return self.frames()
-
-    def frames(self) -> Iterator[tuple[NDArray[np.uint8], float]]:
-        """Connect and yield (image, capture_time_s) for each part, in stream order."""
-        self.close()
-        conn = http.client.HTTPConnection(self._host, self._port, timeout=self.timeout_s)
-        response: http.client.HTTPResponse | None = None
-        try:
-            conn.request("GET", self._path)
-            self._sock = conn.sock
-            response = conn.getresponse()
-            if response.status != 200:
-                raise InputError(f"{self.url}: HTTP {response.status} {response.reason}")
-            boundary = _boundary(response.getheader("Content-Type", ""))
-            if boundary is None:
-                raise InputError(f"{self.url}: not a multipart stream (Content-Type "
-                                 f"{response.getheader('Content-Type')!r})")
-            while True:
-                part = _read_part(response, boundary)
-                if part is None:
-                    return
-                headers, body = part
-                image = _decode(body)
-                if image is None:
-                    self.corrupt_frames += 1
-                    continue
-                yield image, _capture_time_s(headers)
-        finally:
-            if response is not None:
-                response.close()
-            conn.close()
-
-    def close(self) -> None:
-        """End the stream: a frames() generator, even one blocked in another thread, stops at
-        its next read."""
-        sock, self._sock = self._sock, None
-        if sock is not None:
-            with contextlib.suppress(OSError):
-                sock.shutdown(socket.SHUT_RDWR)
-
-    def __enter__(self) -> MjpegReader:
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self.close()
-
-
-def _boundary(content_type: str) -> str | None:
-    """The boundary of a multipart/x-mixed-replace Content-Type, or None."""
-    kind, _, params = content_type.partition(";")
-    if kind.strip().lower() != "multipart/x-mixed-replace":
-        return None
-    for param in params.split(";"):
-        name, _, value = param.strip().partition("=")
-        if name.strip().lower() == "boundary" and value.strip():
-            return value.strip().strip('"').removeprefix("--")
-    return None
-
-
-_MAX_HEADER_LINE = 4096
-_MAX_PART_BYTES = 64 * 1024 * 1024
-
-
-def _read_part(response: http.client.HTTPResponse,
-               boundary: str) -> tuple[dict[str, str], bytes] | None:
-    """The next part's (lower-case headers, body), or None at the end of the stream."""
-    delimiter = f"--{boundary}".encode("ascii")
-    while True:  # skip the CRLF after the previous body and any preamble
-        line = response.readline(_MAX_HEADER_LINE)
-        if not line:
-            return None
-        stripped = line.strip()
-        if stripped == delimiter + b"--":
-            return None
-        if stripped == delimiter:
-            break
-    headers: dict[str, str] = {}
-    while True:
-        line = response.readline(_MAX_HEADER_LINE)
-        if not line:
-            return None
-        if not line.strip():
-            break
-        name, sep, value = line.decode("latin-1").partition(":")
-        if not sep:
-            raise InputError(f"malformed part header line {line!r}")
-        headers[name.strip().lower()] = value.strip()
-    try:
-        length = int(headers["content-length"])
-    except (KeyError, ValueError) as exc:
-        raise InputError(f"part without a valid Content-Length: {headers}") from exc
-    if not 0 <= length <= _MAX_PART_BYTES:
-        raise InputError(f"part Content-Length {length} out of range")
-    body = response.read(length)
-    if len(body) < length:
-        return None  # the stream ended mid-part
-    return headers, body
-
-
-def _capture_time_s(headers: dict[str, str]) -> float:
-    value = headers.get(CAPTURE_TIME_HEADER.lower())
-    if value is None:
-        raise InputError(f"part without {CAPTURE_TIME_HEADER}: cannot pair it with a pose")
-    try:
-        return int(value) / 1e6
-    except ValueError as exc:
-        raise InputError(f"{CAPTURE_TIME_HEADER} is not an integer: {value!r}") from exc
-
-
-def _decode(body: bytes) -> NDArray[np.uint8] | None:
-    image = cv2.imdecode(np.frombuffer(body, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        return None
-    return np.asarray(image, dtype=np.uint8)

@@ -8,6 +8,8 @@ the process later, far from the cause.
 
 from __future__ import annotations
 
+from collections.abc import Collection
+
 import numpy as np
 import pupil_apriltags
 from numpy.typing import NDArray
@@ -33,10 +35,17 @@ class TagDetector(pupil_apriltags.Detector):  # type: ignore[misc]
             destroy(family_ptr)
 
 
-def detect_centres(detector: pupil_apriltags.Detector, image: NDArray[np.uint8]
+def detect_centres(detector: pupil_apriltags.Detector, image: NDArray[np.uint8],
+                   min_decision_margin: float = 0.0, allowed_ids: Collection[int] = ()
                    ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-    """Tag ids (n,) and centres (n, 2) [u, v] in OpenCV pixels of the tags in a grey image."""
-    found = detector.detect(np.ascontiguousarray(image))
+    """Tag ids (n,) and centres (n, 2) [u, v] in OpenCV pixels of the tags in a grey image.
+
+    Detections below min_decision_margin, or with an id outside allowed_ids when it is not
+    empty, are left out.
+    """
+    found = [d for d in detector.detect(np.ascontiguousarray(image))
+             if d.decision_margin >= min_decision_margin
+             and (not allowed_ids or d.tag_id in allowed_ids)]
     ids = np.array([d.tag_id for d in found], dtype=np.int64)
     centres = np.array([d.center for d in found], dtype=np.float64).reshape(-1, 2)
     return ids, centres - PUPIL_OFFSET_PX

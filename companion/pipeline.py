@@ -1,0 +1,220 @@
+"""One pipeline for the live service, the SITL and replay: frame + pose -> tags -> UTM -> SAT step.
+
+`Pipeline.step(image, pose)` runs one estimator step on a frame: detect tags, project them to
+the ground in UTM, take the footprint this frame covered as the sensing region, and step the
+GM-PHD. `Pipeline.blind(t_s)` steps with no frame (camera down, no pose): it predicts but does
+not apply a no-detection update, because not seeing is not seeing nothing. It is synchronous and
+reads no clock: time comes with the pose.
+
+The estimator works in a search frame: UTM metres shifted so that the search area's bounding box
+starts at (0, 0). That frame is UTM up to a constant, and the planners' World is that box.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.config import SearchConfig, ServiceConfig
+from companion.geo import Utm
+from companion.plan.world import World
+from companion.sat.filter import SatParams, SatState, Scan, initial_state, step
+from companion.sat.fov import ConvexPolygon, Disk, Region
+from companion.sat.gp import GpPredictor
+from companion.sat.mixture import Mixture
+from companion.sat.predict import LinearModel
+from companion.sim.run import sat_params
+from companion.vision.camera import CameraModel
+from companion.vision.projection import (
+    GeoPose,
+    PoseUncertainty,
+    footprint_utm,
+    project_detections,
+    vehicle_utm,
+)
+from companion.vision.tags import TagDetector, detect_centres
+
+__all__ = ["Pipeline", "SearchFrame", "StepRecord"]
+
+FloatArray = NDArray[np.float64]
+REBOOT_JUMP_S = 1.0  # the autopilot's boot time went back by more: it rebooted
+
+
+@dataclass(frozen=True)
+class SearchFrame:
+    """UTM in one zone, shifted so that the search area's bounding box starts at (0, 0)."""
+
+    utm: Utm
+    origin_utm_m: FloatArray  # (2,) easting, northing of the box's south-west corner
+    world: World
+    area_xy_m: FloatArray  # (k, 2) the area polygon in this frame
+
+    @staticmethod
+    def from_config(search: SearchConfig) -> SearchFrame:
+        """The frame of a configured search area."""
+        utm = Utm(search.utm_epsg)
+        easting, northing = utm.geodetic_to_utm(search.area_latlon[:, 0], search.area_latlon[:, 1])
+        corners = np.column_stack([easting, northing])
+        origin = corners.min(axis=0)
+        size = corners.max(axis=0) - origin
+        return SearchFrame(utm, origin, World(float(size[0]), float(size[1])), corners - origin)
+
+    def to_utm(self, xy_m: FloatArray) -> FloatArray:
+        """(..., 2) search-frame points -> easting, northing."""
+        return np.asarray(xy_m, dtype=np.float64) + self.origin_utm_m
+
+    def from_utm(self, en_m: FloatArray) -> FloatArray:
+        """(..., 2) easting, northing -> search-frame points."""
+        return np.asarray(en_m, dtype=np.float64) - self.origin_utm_m
+
+    def to_latlon(self, xy_m: FloatArray) -> FloatArray:
+        """(n, 2) search-frame points -> (n, 2) [lat, lon]."""
+        en = self.to_utm(np.atleast_2d(xy_m))
+        lat, lon = self.utm.utm_to_geodetic(en[:, 0], en[:, 1])
+        return np.column_stack([lat, lon])
+
+
+@dataclass(frozen=True)
+class StepRecord:
+    """What one step saw and did: the JSON-lines log record and the pipeline's counters."""
+
+    t_s: float  # on the estimator's time base (the autopilot's boot time, across reboots)
+    blind: str | None  # why no frame was used ("no frame", "no pose", ...) or None
+    detections: int  # tags the detector kept
+    measurements_xy_m: FloatArray  # (m, 2) search frame
+    region_xy_m: FloatArray | None  # (k, 2) the sensing region's outline, or None when blind
+    vehicle_xy_m: FloatArray | None
+    r_cov_m2: FloatArray
+    components: int
+    weight_sum: float
+    confirmed: int
+    step_ms: float = 0.0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self, frame: SearchFrame) -> dict[str, Any]:
+        """The record as plain JSON data (UTM coordinates)."""
+        def en(xy: FloatArray | None) -> list[list[float]] | None:
+            if xy is None:
+                return None
+            return [[round(float(e), 3), round(float(n), 3)] for e, n in frame.to_utm(xy)]
+
+        return {"t_s": round(self.t_s, 6), "blind": self.blind, "detections": self.detections,
+                "measurements_utm": en(self.measurements_xy_m),
+                "region_utm": en(self.region_xy_m),
+                "vehicle_utm": en(None if self.vehicle_xy_m is None else self.vehicle_xy_m[None]),
+                "r_cov_m2": np.round(self.r_cov_m2, 4).tolist(), "components": self.components,
+                "weight_sum": round(self.weight_sum, 4), "confirmed": self.confirmed,
+                "step_ms": round(self.step_ms, 3), **self.extra}
+
+
+def _shrunk(polygon_xy: FloatArray, margin_m: float) -> FloatArray:
+    """A convex polygon moved towards its centroid so that its edges come in by about margin_m."""
+    centre = polygon_xy.mean(axis=0)
+    edges = np.roll(polygon_xy, -1, axis=0) - polygon_xy
+    normals = np.column_stack([edges[:, 1], -edges[:, 0]])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    inradius = float(np.min(np.abs(np.sum((polygon_xy - centre) * normals, axis=1))))
+    if margin_m <= 0.0 or inradius <= 0.0:
+        return polygon_xy
+    scale = max(1.0 - margin_m / inradius, 0.05)
+    shrunk: FloatArray = centre + (polygon_xy - centre) * scale
+    return shrunk
+
+
+class Pipeline:
+    """Frames and poses in, estimator state out; one instance per flight."""
+
+    def __init__(self, config: ServiceConfig, camera: CameraModel,
+                 detector: TagDetector | None = None) -> None:
+        self.config = config
+        self.camera = camera
+        self.frame = SearchFrame.from_config(config.search)
+        est = config.estimator
+        self.params: SatParams = sat_params(config.filter, est.p_detect, est.clutter_per_scan,
+                                            1.0 / est.rate_hz)
+        self.gp = GpPredictor(self.params.gp)
+        self.state: SatState | None = None
+        self.detector = detector or TagDetector(
+            families=config.detector.family, nthreads=config.detector.threads,
+            quad_decimate=config.detector.decimate)
+        p = config.pose
+        self.pose_sigma = PoseUncertainty(p.horizontal_std_m, p.vertical_std_m,
+                                          p.attitude_std_deg, p.heading_std_deg)
+        self._last_boot_s: float | None = None
+        self._time_offset_s = 0.0
+
+    # -- time --------------------------------------------------------------------------------
+
+    def _filter_time(self, boot_t_s: float) -> float:
+        """The estimator's time for an autopilot boot time: continuous across reboots."""
+        last = self._last_boot_s
+        if last is not None and boot_t_s < last - REBOOT_JUMP_S:
+            self._time_offset_s += last - boot_t_s  # a reboot: carry on from where we were
+        self._last_boot_s = boot_t_s if last is None else max(boot_t_s, last - REBOOT_JUMP_S)
+        t_s = boot_t_s + self._time_offset_s
+        if self.state is not None:
+            t_s = max(t_s, self.state.t_s)
+        return t_s
+
+    def _state_at(self, t_s: float) -> SatState:
+        if self.state is None:
+            dim = 4 if self.params.linear_model is LinearModel.CONSTANT_VELOCITY else 2
+            self.state = initial_state(Mixture.empty(dim), t_s, self.params)
+        return self.state
+
+    # -- steps -------------------------------------------------------------------------------
+
+    def step(self, image: NDArray[np.uint8], pose: GeoPose) -> StepRecord:
+        """One estimator step on a frame taken at pose.t_s (the autopilot's boot time)."""
+        det = self.config.detector
+        _, pixels = detect_centres(self.detector, image, det.min_decision_margin,
+                                   det.allowed_ids)
+        est = self.config.estimator
+        centre = np.array([[self.camera.cx_px, self.camera.cy_px]])
+        ground = project_detections(self.camera, pose, np.vstack([centre, pixels]),
+                                    self.frame.utm, det.pixel_std_px, self.pose_sigma,
+                                    est.max_range_m)
+        valid = ground.valid[1:]
+        z = self.frame.from_utm(ground.xy_utm_m[1:][valid])
+        covs = ground.cov_utm_m2[1:][valid]
+        r_cov = covs.mean(axis=0) if len(covs) else ground.cov_utm_m2[0]
+        if not np.all(np.isfinite(r_cov)):  # the centre ray misses the ground (camera level?)
+            return self.blind(pose.t_s, "the camera does not see the ground")
+        vehicle = self.frame.from_utm(vehicle_utm(pose, self.frame.utm))
+        region: Region
+        if est.fov == "disk":
+            region = Disk(vehicle, est.fov_radius_m)
+            outline = vehicle + est.fov_radius_m * np.column_stack(
+                [np.cos(np.linspace(0, 2 * math.pi, 24, endpoint=False)),
+                 np.sin(np.linspace(0, 2 * math.pi, 24, endpoint=False))])
+        else:
+            footprint = footprint_utm(self.camera, pose, self.frame.utm, est.max_range_m)
+            outline = _shrunk(self.frame.from_utm(footprint.vertices_xy), est.footprint_margin_m)
+            region = ConvexPolygon(outline)
+        return self._advance(pose.t_s, Scan(0.0, region, z, r_cov, vehicle), None,
+                             len(pixels), outline)
+
+    def blind(self, boot_t_s: float, reason: str) -> StepRecord:
+        """A step without a usable frame: predict only, nobody is erased for being unseen."""
+        r_cov = np.eye(2) * self.config.filter.gp_sigma_n ** 2
+        return self._advance(boot_t_s, Scan(0.0, None, np.zeros((0, 2)), r_cov, np.zeros(2)),
+                             reason, 0, None)
+
+    def _advance(self, boot_t_s: float, scan: Scan, blind: str | None, detections: int,
+                 outline: FloatArray | None) -> StepRecord:
+        t_s = self._filter_time(boot_t_s)
+        state = self._state_at(t_s)
+        scan = Scan(t_s, scan.region, scan.measurements_xy, scan.r_cov, scan.sensor_xy)
+        self.state, _ = step(state, scan, self.params, self.gp)
+        tracks = self.state.tracks
+        return StepRecord(
+            t_s=t_s, blind=blind, detections=detections,
+            measurements_xy_m=np.asarray(scan.measurements_xy), region_xy_m=outline,
+            vehicle_xy_m=None if blind else np.asarray(scan.sensor_xy),
+            r_cov_m2=np.asarray(scan.r_cov), components=self.state.mixture.size,
+            weight_sum=float(self.state.mixture.total_weight),
+            confirmed=int(tracks.confirmed.sum()))

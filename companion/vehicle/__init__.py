@@ -1,0 +1,1 @@
+"""Vehicle: the link to the autopilot and the timestamped poses it reports."""
