@@ -134,6 +134,7 @@ class Snapshot:
     battery_percent: float
     clock_s: float  # the SITL clock's time of this state (boot time + t_s)
     online: bool  # False while rebooting: silent, no time base
+    last_setpoint_clock_s: float  # SITL clock time of the last setpoint received (-inf: none)
 
 
 @dataclass
@@ -161,6 +162,7 @@ class MockAutopilot:
         self._glitch: tuple[FloatArray, float] = (np.zeros(3), -1.0)
         self.statustexts: list[str] = []
         self.texts_received: list[tuple[int, int, str]] = []  # (component, severity, text)
+        self._last_setpoint_clock_s = -math.inf
         self._reset(0.0)
 
     # -- lifecycle ----------------------------------------------------------------------------
@@ -232,7 +234,7 @@ class MockAutopilot:
         with self._lock:
             return Snapshot(self._t_s, self._boot, self._behaviour, self._armed, self._vehicle,
                             self._battery_percent(), self._boot_wall_s + self._t_s,
-                            self._reboot_until_s < 0.0)
+                            self._reboot_until_s < 0.0, self._last_setpoint_clock_s)
 
     # -- the operator and the faults ----------------------------------------------------------
 
@@ -568,6 +570,7 @@ class MockAutopilot:
         return len(recent) >= 2 and t - recent[-1] <= STREAMING_FRESH_S
 
     def _accept_setpoint(self, target: Target) -> None:
+        self._last_setpoint_clock_s = self._boot_wall_s + self._t_s
         self._setpoint = _Setpoint(target, self._t_s)
         self._setpoint_times.append(self._t_s)
         if self.config.flavour is Flavour.ARDUPILOT and self._behaviour is Behaviour.OFFBOARD:

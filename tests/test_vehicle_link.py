@@ -20,7 +20,7 @@ from companion.vehicle.mavsdk_link import (
 from sitl.autopilot import AutopilotConfig, MockAutopilot
 from sitl.clock import SimClock
 from sitl.link import UdpLink
-from sitl.modes import Flavour
+from sitl.modes import Behaviour, Flavour
 
 SPEEDUP = 3.0
 GEO = LocalNed(47.397742, 8.545594, 488.0)
@@ -115,9 +115,17 @@ def test_telemetry_carries_boot_times_and_commands_fly(
                 await sink.until(lambda: link.status.flight_mode is FlightMode.OFFBOARD, 5.0)
                 await sink.until(lambda: abs(sink.locals[-1][1] - north0 - 6.0) < 0.5, 20.0)
                 await link.status_text("companion: 5 targets confirmed", "notice")
-                await link.stop_offboard()
-                await sink.until(lambda: link.status.flight_mode is not FlightMode.OFFBOARD,
-                                 5.0)
+                # The pilot takes over; releasing stops the setpoints and leaves the mode alone.
+                ap.pilot_set_mode(Behaviour.POSITION)
+                await sink.until(lambda: link.status.flight_mode is FlightMode.POSCTL
+                                 or link.status.flight_mode is FlightMode.HOLD, 5.0)
+                released_s = ap.clock.now_s()
+                link.release()
+                await sink.until(lambda: sink.attitudes[-1][0] > ap.snapshot().t_s - 0.1
+                                 and ap.clock.now_s() > released_s + 1.0, 10.0)
+                snap = ap.snapshot()
+                assert snap.behaviour is Behaviour.POSITION
+                assert snap.last_setpoint_clock_s < released_s + 0.1
                 await link.land()
                 await sink.until(lambda: not link.status.armed, 40.0)
             finally:

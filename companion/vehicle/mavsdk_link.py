@@ -6,6 +6,10 @@ asked. `run_telemetry(sink)` then feeds a `TelemetrySink` until cancelled. Poses
 GLOBAL_POSITION_INT, LOCAL_POSITION_NED and ATTITUDE_QUATERNION messages (MavlinkDirect), so each
 carries the autopilot's `time_boot_ms`, the time base of the camera's capture times. Flight
 mode, armed state, health, in-air and battery come from the Telemetry plugin.
+
+Stopping: `release()` ends the setpoint stream without asking for any mode. MAVSDK's own
+Offboard.stop() asks for Hold even after a pilot switched to Position, taking the vehicle back
+from the pilot, so the service never calls it.
 """
 
 from __future__ import annotations
@@ -77,6 +81,7 @@ class MavsdkLink:
 
     def __init__(self, mavsdk: Mavsdk, system: Any) -> None:
         self._mavsdk = mavsdk
+        self._system = system
         self.telemetry = TelemetryAsync(system)
         self.action = ActionAsync(system)
         self.offboard = OffboardAsync(system)
@@ -188,9 +193,15 @@ class MavsdkLink:
         """Request OFFBOARD (PX4) / GUIDED (ArduPilot); a setpoint must have been set."""
         await self._command("offboard start", self.offboard.start)
 
-    async def stop_offboard(self) -> None:
-        """Stop streaming setpoints; when still in OFFBOARD MAVSDK asks for Hold."""
-        await self._command("offboard stop", self.offboard.stop)
+    def release(self) -> None:
+        """Stop sending setpoints now, asking for no mode: the pilot may have taken control.
+
+        MAVSDK's Offboard.stop() asks for Hold whatever the mode is, which would take the
+        vehicle from a pilot who switched to Position; dropping the plugin stops its 20 Hz
+        resend without a word to the autopilot.
+        """
+        self.offboard.destroy()
+        self.offboard = OffboardAsync(self._system)
 
     async def hold(self) -> None:
         """Request Hold (PX4 AUTO.LOITER, ArduPilot LOITER/BRAKE)."""
