@@ -53,24 +53,20 @@ class LocalNed:
     def geodetic_to_ned(
         self, lat_deg: ArrayLike, lon_deg: ArrayLike, alt_m: ArrayLike
     ) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """(north_m, east_m, down_m) of WGS84 points."""
-        east, north, up = self._enu.transform(
-            np.asarray(lat_deg, dtype=np.float64),
-            np.asarray(lon_deg, dtype=np.float64),
-            np.asarray(alt_m, dtype=np.float64),
-        )
+        """(north_m, east_m, down_m) of WGS84 points (arguments broadcast together)."""
+        lat, lon, alt = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64)
+                                              for a in (lat_deg, lon_deg, alt_m)))
+        east, north, up = self._enu.transform(lat, lon, alt)
         return np.asarray(north), np.asarray(east), -np.asarray(up)
 
     def ned_to_geodetic(
         self, north_m: ArrayLike, east_m: ArrayLike, down_m: ArrayLike
     ) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """(lat_deg, lon_deg, alt_m) of points in this frame."""
-        lat, lon, alt = self._enu.transform(
-            np.asarray(east_m, dtype=np.float64),
-            np.asarray(north_m, dtype=np.float64),
-            -np.asarray(down_m, dtype=np.float64),
-            direction=TransformDirection.INVERSE,
-        )
+        """(lat_deg, lon_deg, alt_m) of points in this frame (arguments broadcast together)."""
+        north, east, down = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64)
+                                                  for a in (north_m, east_m, down_m)))
+        lat, lon, alt = self._enu.transform(east, north, -down,
+                                            direction=TransformDirection.INVERSE)
         return np.asarray(lat), np.asarray(lon), np.asarray(alt)
 
 

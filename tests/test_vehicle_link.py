@@ -106,7 +106,8 @@ def test_telemetry_carries_boot_times_and_commands_fly(
                     assert (north_m, east_m) == pytest.approx((0.0, 0.0), abs=0.3)
 
                 await sink.until(lambda: link.status.position_ok and link.status.armable, 10.0)
-                await link.arm_and_take_off(5.0)
+                await link.arm()
+                await link.take_off(5.0)
                 await sink.until(lambda: sink.positions[-1][4] > 4.7, 20.0)
                 assert link.status.armed and link.status.in_air
                 north0, east0 = sink.locals[-1][1:3]

@@ -176,11 +176,14 @@ class MavsdkLink:
             result = getattr(getattr(exc, "result", None), "name", None) or str(exc)
             raise VehicleError(f"{what} refused: {result}") from exc
 
-    async def arm_and_take_off(self, alt_rel_m: float) -> None:
-        """Arm and take off to alt_rel_m above home."""
+    async def arm(self) -> None:
+        """Arm the motors."""
+        await self._command("arm", self.action.arm)
+
+    async def take_off(self, alt_rel_m: float) -> None:
+        """Take off to alt_rel_m above home."""
         await self._command("set takeoff altitude",
                             lambda: self.action.set_takeoff_altitude(alt_rel_m))
-        await self._command("arm", self.action.arm)
         await self._command("takeoff", self.action.takeoff)
 
     async def set_setpoint(self, north_m: float, east_m: float, down_m: float,

@@ -1,0 +1,383 @@
+"""The asyncio shell: vehicle, camera, pipeline, mission and setpoints, and the run's reports.
+
+`Service(config).run(stop)` connects to the autopilot over MAVSDK and opens the camera. Three
+tasks then run until the mission is over (landed, or `stop` set):
+- telemetry: MAVSDK streams into a `VehicleView` (poses on the autopilot's boot time);
+- estimator: at `estimator.rate_hz`, the newest frame with the pose at its capture time goes
+  through the `Pipeline` in a worker thread. A missing frame, a blank frame or a missing pose is
+  a blind step, which predicts only;
+- control: at `mission.setpoint_rate_hz`, the mission state machine advances on what was
+  observed and its commands are carried out. While it streams, the planner's next point passes
+  the safety gate and goes out as a local NED setpoint.
+
+Every estimator step is a JSON line in `steps.jsonl`, and every state change, command, refusal
+and gate action is one in `events.jsonl`. At the end the confirmed tracks are written as GeoJSON
+and CSV with `summary.json`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion import mission as ms
+from companion.camera.source import Frame, LatestFrameGrabber, open_source
+from companion.config import CameraConfig, ServiceConfig
+from companion.geo import LocalNed
+from companion.pipeline import Pipeline, StepRecord
+from companion.plan.gate import GateLimits, Setpoint, gate
+from companion.plan.planners import (
+    LargestGaussian,
+    LawnMower,
+    NearestGaussian,
+    Planner,
+    lawnmower_path,
+    move_towards,
+)
+from companion.report import TrackRecord, confirmed_tracks, write_csv, write_geojson
+from companion.vehicle.mavsdk_link import FlightMode, MavsdkLink, VehicleError
+from companion.vehicle.view import VehicleView
+from companion.vision.calibration import load_calibration
+from companion.vision.camera import CameraModel
+from companion.vision.projection import GeoPose
+
+__all__ = ["RunResult", "Service", "camera_model"]
+
+FloatArray = NDArray[np.float64]
+BLANK_FRAME_STD = 2.0  # grey levels: below this a frame shows nothing (lens cap, black frame)
+MIN_HEIGHT_M = 1.0  # lower than this the camera sees too little of the ground to count
+TELEMETRY_STALE_S = 2.0  # no telemetry for this long: the link is down
+BATTERY_LOW_PERCENT = 20.0
+REACHED_M = 1.5  # the vehicle is this close to a waypoint: the planner moves on
+
+_MODES = {
+    FlightMode.OFFBOARD: ms.FlightMode.OFFBOARD, FlightMode.HOLD: ms.FlightMode.HOLD,
+    FlightMode.POSCTL: ms.FlightMode.POSCTL, FlightMode.ALTCTL: ms.FlightMode.ALTCTL,
+    FlightMode.MANUAL: ms.FlightMode.MANUAL, FlightMode.STABILIZED: ms.FlightMode.MANUAL,
+    FlightMode.ACRO: ms.FlightMode.MANUAL, FlightMode.RATTITUDE: ms.FlightMode.MANUAL,
+    FlightMode.MISSION: ms.FlightMode.MISSION, FlightMode.TAKEOFF: ms.FlightMode.TAKEOFF,
+    FlightMode.LAND: ms.FlightMode.LAND, FlightMode.RETURN_TO_LAUNCH: ms.FlightMode.RTL,
+    FlightMode.UNKNOWN: ms.FlightMode.UNKNOWN,
+}
+
+
+def camera_model(config: CameraConfig) -> CameraModel:
+    """The camera: from its calibration file, or an ideal pinhole of the configured view."""
+    if config.calibration is not None:
+        return load_calibration(config.calibration, config.mount_rpy_deg, config.mount_offset_m)
+    return CameraModel.from_hfov(config.hfov_deg, config.width_px, config.height_px,
+                                 mount_rpy_deg=config.mount_rpy_deg,
+                                 mount_offset_m=config.mount_offset_m)
+
+
+@dataclass
+class RunResult:
+    """What a run left behind."""
+
+    out_dir: Path
+    tracks: list[TrackRecord]
+    mission_state: str
+    counters: dict[str, int] = field(default_factory=dict)
+
+
+class _JsonLines:
+    """Appends one JSON object per line and flushes it (a crash loses at most the last line)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._fh: TextIO = path.open("a", encoding="utf-8")
+
+    def write(self, record: dict[str, Any]) -> None:
+        self._fh.write(json.dumps(record, separators=(",", ":")) + "\n")
+        self._fh.flush()
+
+    def close(self) -> None:
+        self._fh.close()
+
+
+def _run_dir(root: Path, now: datetime) -> Path:
+    base = root / now.strftime("run-%Y%m%dT%H%M%SZ")
+    path, n = base, 1
+    while path.exists():
+        n += 1
+        path = base.with_name(f"{base.name}-{n}")
+    path.mkdir(parents=True)
+    return path
+
+
+class Service:
+    """The companion service for one flight."""
+
+    def __init__(self, config: ServiceConfig, *, camera: CameraModel | None = None,
+                 clock: Callable[[], float] = time.monotonic, time_scale: float = 1.0,
+                 announce: Callable[[str], None] = lambda _: None) -> None:
+        self.config = config
+        self.time_scale = time_scale  # clock seconds per wall second (a SITL's speed-up)
+        self.camera = camera or camera_model(config.camera)
+        self.clock = clock
+        self.announce = announce
+        self.pipeline = Pipeline(config, self.camera)
+        self.view = VehicleView(clock, config.pose.max_gap_s)
+        self.counters = {"steps": 0, "blind_steps": 0, "frames_used": 0, "setpoints": 0,
+                         "setpoints_clamped": 0, "setpoints_refused": 0, "command_errors": 0}
+        self.mission = ms.Mission(self._mission_config())
+        self._stream: ms.Stream | None = None
+        self._previous: Setpoint | None = None
+        self._carrot_xy: FloatArray | None = None
+        self._planner = self._make_planner()
+        self._progress = 0
+        self._limits: GateLimits | None = None
+        self._events: _JsonLines | None = None
+
+    # -- configuration -----------------------------------------------------------------------
+
+    def _mission_config(self) -> ms.MissionConfig:
+        m, s = self.config.mission, self.config.search
+        return ms.MissionConfig(
+            auto_arm_takeoff=m.auto_arm_takeoff, auto_offboard=m.auto_offboard,
+            takeoff_alt_m=s.altitude_m, resume_on_pilot_offboard=m.resume_on_pilot_offboard,
+            end=m.end, sweeps=s.sweeps if s.planner == "lawnmower" else 1,
+            time_limit_s=m.time_limit_s, end_action=m.end_action)
+
+    def _make_planner(self) -> Planner:
+        s, world = self.config.search, self.pipeline.frame.world
+        if s.planner == "lawnmower":
+            return LawnMower(lawnmower_path(world, np.zeros(2), s.lane_spacing_m, s.sweeps))
+        return NearestGaussian() if s.planner == "nearest-gaussian" else LargestGaussian()
+
+    # -- the run -----------------------------------------------------------------------------
+
+    async def run(self, stop: asyncio.Event | None = None) -> RunResult:
+        """Fly the mission until it is over or `stop` is set; write the reports."""
+        stop = stop or asyncio.Event()
+        out = _run_dir(Path(self.config.output.dir), datetime.now(UTC))
+        self._events = _JsonLines(out / "events.jsonl")
+        steps = _JsonLines(out / "steps.jsonl")
+        self._event("start", out_dir=str(out))
+        c = self.config.camera
+        grabber = LatestFrameGrabber(open_source(c.source, c.kind), self.clock).start()
+        try:
+            v = self.config.vehicle
+            async with MavsdkLink.connect(v.connection, v.connect_timeout_s,
+                                          v.telemetry_rate_hz) as link:
+                self._event("connected", url=v.connection)
+                async with asyncio.TaskGroup() as group:
+                    telemetry = group.create_task(link.run_telemetry(self.view))
+                    estimator = group.create_task(self._estimate(grabber, steps))
+                    await self._control(link, stop)
+                    telemetry.cancel()
+                    estimator.cancel()
+        finally:
+            grabber.stop()
+            steps.close()
+            self.counters["frames_dropped"] = grabber.dropped
+            self.counters["frame_errors"] = grabber.errors
+        tracks = self._write_reports(out)
+        self._event("end", state=self.mission.state.value, confirmed=len(tracks),
+                    **self.counters)
+        self._events.close()
+        return RunResult(out, tracks, self.mission.state.value, dict(self.counters))
+
+    def _event(self, event: str, **fields: Any) -> None:
+        if self._events is not None:
+            self._events.write({"t_s": round(self.clock(), 6), "event": event, **fields})
+
+    # -- estimator ---------------------------------------------------------------------------
+
+    async def _estimate(self, grabber: LatestFrameGrabber, steps: _JsonLines) -> None:
+        period_s = 1.0 / self.config.estimator.rate_hz
+        loop = asyncio.get_running_loop()
+        next_s = self.clock()
+        while True:  # one step per period, on the newest frame; no backlog builds up
+            await asyncio.sleep(max(next_s - self.clock(), 0.0) / self.time_scale)
+            next_s = max(next_s + period_s, self.clock())
+            frame = await loop.run_in_executor(None, grabber.get,
+                                               0.5 * period_s / self.time_scale)
+            record = await self._estimator_step(frame, loop)
+            if record is None:
+                continue
+            self.counters["steps"] += 1
+            self.counters["blind_steps"] += record.blind is not None
+            steps.write(record.to_json(self.pipeline.frame))
+
+    async def _estimator_step(self, frame: Frame | None,
+                              loop: asyncio.AbstractEventLoop) -> StepRecord | None:
+        boot_now_s = self.view.boot_time_now()
+        if boot_now_s is None:
+            return None  # no telemetry yet: no time base
+        if frame is None:
+            return self.pipeline.blind(boot_now_s, "no frame")
+        capture_s = frame.capture_time_s
+        if capture_s is None:  # a camera that knows no boot time: map its receive time
+            capture_s = (frame.receive_time_s + (boot_now_s - self.clock())
+                         - self.config.camera.latency_s)
+        sample = self.view.poses.at(capture_s)
+        if sample is None:
+            return self.pipeline.blind(capture_s, "no pose at the capture time")
+        if sample.alt_rel_m < MIN_HEIGHT_M:
+            return self.pipeline.blind(capture_s, "on the ground")
+        if float(np.std(frame.image[::4, ::4])) < BLANK_FRAME_STD:
+            return self.pipeline.blind(capture_s, "blank frame")
+        pose = GeoPose(capture_s, sample.lat_deg, sample.lon_deg, sample.alt_amsl_m,
+                       sample.alt_rel_m, sample.q_wxyz)
+        started = time.perf_counter()
+        record = await loop.run_in_executor(None, self.pipeline.step, frame.image, pose)
+        self.counters["frames_used"] += 1
+        record.extra["latency_ms"] = round(1e3 * (self.clock() - frame.receive_time_s), 2)
+        record.extra["process_ms"] = round(1e3 * (time.perf_counter() - started), 2)
+        return record
+
+    # -- control -----------------------------------------------------------------------------
+
+    def _inputs(self) -> ms.MissionInputs:
+        st, view = self.view.status, self.view
+        now_s = view.boot_time_now()
+        fresh = (now_s is not None and view.latest_boot_s is not None
+                 and now_s - view.latest_boot_s < TELEMETRY_STALE_S)
+        state = self.pipeline.state
+        confirmed = 0 if state is None else int(state.tracks.confirmed.sum())
+        passes = 0
+        if isinstance(self._planner, LawnMower):
+            passes = self._progress * self.config.search.sweeps // len(self._planner.path_xy)
+        return ms.MissionInputs(
+            connected=st is not None and fresh,
+            health_ok=st is not None and st.position_ok,
+            armed=st is not None and st.armed,
+            in_air=st is not None and st.in_air,
+            flight_mode=_MODES.get(st.flight_mode, ms.FlightMode.OTHER) if st else
+            ms.FlightMode.UNKNOWN,
+            battery_low=st is not None and st.battery_percent < BATTERY_LOW_PERCENT,
+            position_ok=fresh and view.local_origin() is not None,
+            coverage_passes=passes, confirmed_targets=confirmed,
+            expected_targets=self.config.search.expected_targets,
+            setpoints_streaming=self._stream is not None and self._previous is not None)
+
+    async def _control(self, link: MavsdkLink, stop: asyncio.Event) -> None:
+        period_s = 1.0 / self.config.mission.setpoint_rate_hz
+        final = (ms.State.DONE, ms.State.FAILSAFE)
+        while not stop.is_set():
+            self.mission, commands = ms.advance(self.mission, self._inputs(), self.clock())
+            for command in commands:
+                await self._execute(link, command)
+            if self._stream is not None:
+                await self._send_setpoint(link, period_s)
+            st = self.view.status
+            if self.mission.state in final and st is not None and not st.armed:
+                return  # landed and disarmed after the end
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stop.wait(), period_s / self.time_scale)
+
+    async def _execute(self, link: MavsdkLink, command: ms.Command) -> None:
+        kind = command.kind
+        self._event("command", kind=kind.value, text=command.text or None,
+                    stream=command.stream.value if command.stream else None)
+        if kind is ms.CommandKind.STATUSTEXT:
+            self.announce(command.text)
+        try:
+            if kind is ms.CommandKind.STOP_SETPOINTS:
+                link.release()  # at once, and without asking for any mode
+                self._stream, self._previous, self._carrot_xy = None, None, None
+            elif kind is ms.CommandKind.START_SETPOINTS:
+                self._stream = command.stream
+            elif kind is ms.CommandKind.ARM:
+                await link.arm()
+            elif kind is ms.CommandKind.TAKEOFF:
+                await link.take_off(command.takeoff_alt_m or self.config.search.altitude_m)
+            elif kind is ms.CommandKind.START_OFFBOARD:
+                await link.start_offboard()
+            elif kind is ms.CommandKind.HOLD:
+                await link.hold()
+            elif kind is ms.CommandKind.LAND:
+                await link.land()
+            elif kind is ms.CommandKind.RTL:
+                await link.return_to_launch()
+            elif kind is ms.CommandKind.STATUSTEXT:
+                severity = (command.severity or ms.Severity.INFO).name.lower()
+                await link.status_text(command.text, severity)
+        except VehicleError as exc:
+            self.counters["command_errors"] += 1
+            self._event("command_failed", kind=kind.value, error=str(exc))
+
+    # -- setpoints ---------------------------------------------------------------------------
+
+    def _gate_limits(self, origin: LocalNed, home_amsl_m: float) -> GateLimits:
+        s = self.config.safety
+        fence = s.geofence_latlon
+        north, east, _ = origin.geodetic_to_ned(fence[:, 0], fence[:, 1], origin.alt_m)
+        above_origin_m = home_amsl_m - origin.alt_m
+        return GateLimits(np.column_stack([north, east]), s.min_alt_m + above_origin_m,
+                          s.max_alt_m + above_origin_m, s.max_speed_h_m_s, s.max_speed_v_m_s)
+
+    def _target_xy(self, vehicle_xy: FloatArray, dt_s: float) -> FloatArray:
+        """The search-frame point the vehicle should be at now (a carrot along the plan)."""
+        state = self.pipeline.state
+        carrot = vehicle_xy if self._carrot_xy is None else self._carrot_xy
+        if state is None:
+            return carrot
+        waypoint, self._progress = self._planner.next_waypoint(
+            carrot, state.mixture, state.tracks, self.pipeline.frame.world, self._progress)
+        if waypoint is None:
+            return carrot
+        carrot = move_towards(carrot, waypoint, self.config.search.speed_m_s * dt_s)
+        if (isinstance(self._planner, LawnMower) and np.allclose(carrot, waypoint)
+                and np.hypot(*(vehicle_xy - waypoint)) <= REACHED_M):
+            self._progress += 1
+        self._carrot_xy = carrot
+        return carrot
+
+    async def _send_setpoint(self, link: MavsdkLink, dt_s: float) -> None:
+        view, origin = self.view, self.view.local_origin()
+        now_s = view.boot_time_now()
+        sample = None if now_s is None else view.poses.at(min(now_s, view.latest_boot_s or now_s))
+        if origin is None or sample is None or view.local_ned_m is None or view.home_amsl_m is None:
+            return
+        if self._limits is None:
+            self._limits = self._gate_limits(origin, view.home_amsl_m)
+        vehicle_ned = np.array(view.local_ned_m)
+        yaw_deg = self.config.search.heading_deg
+        if self._stream is ms.Stream.HOLD_HERE:
+            wanted = Setpoint(vehicle_ned[0], vehicle_ned[1], vehicle_ned[2], yaw_deg)
+        else:
+            frame = self.pipeline.frame
+            e, n = frame.utm.geodetic_to_utm(sample.lat_deg, sample.lon_deg)
+            vehicle_xy = frame.from_utm(np.array([float(e), float(n)]))
+            lat, lon = frame.to_latlon(self._target_xy(vehicle_xy, dt_s))[0]
+            alt_amsl_m = view.home_amsl_m + self.config.search.altitude_m
+            north, east, down = origin.geodetic_to_ned(lat, lon, alt_amsl_m)
+            wanted = Setpoint(float(north), float(east), float(down), yaw_deg)
+        result = gate(self._limits, wanted, self._previous, vehicle_ned, dt_s)
+        if result.action != "pass":
+            self.counters[f"setpoints_{result.action}"] += 1
+            self._event("gate", action=result.action, reasons=list(result.reasons))
+        if result.setpoint is None:
+            return
+        sp = result.setpoint
+        await link.set_setpoint(sp.north_m, sp.east_m, sp.down_m, sp.yaw_deg)
+        self._previous = sp
+        self.counters["setpoints"] += 1
+        self._event("setpoint", north_m=round(sp.north_m, 3), east_m=round(sp.east_m, 3),
+                    down_m=round(sp.down_m, 3), mode=self.mission.state.value)
+
+    # -- reports -----------------------------------------------------------------------------
+
+    def _write_reports(self, out: Path) -> list[TrackRecord]:
+        state, frame = self.pipeline.state, self.pipeline.frame
+        records = [] if state is None else confirmed_tracks(
+            state.tracks, frame.origin_utm_m, frame.utm.epsg, frame.to_latlon)
+        write_geojson(out / "tracks.geojson", records)
+        write_csv(out / "tracks.csv", records)
+        summary = {"state": self.mission.state.value, "confirmed": len(records),
+                   "counters": self.counters, "utm_epsg": frame.utm.epsg,
+                   "tracks": [r.id for r in records]}
+        (out / "summary.json").write_text(json.dumps(summary, indent=1))
+        return records

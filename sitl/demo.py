@@ -1,0 +1,182 @@
+"""The main demonstration: the companion service flies a SITL mission and is scored against truth.
+
+`companion-demo [SCENARIO] [--speedup X] [--faults PLAN] [--flavour px4|ardupilot]` starts the
+mock autopilot and the rendered camera of a scenario. It then runs the real service on them with
+`sitl/service.toml`, whose search area, altitude, lanes, camera and filter come from the
+scenario. The service arms, takes off, searches, tracks and lands. The command prints the
+confirmed targets against the truth and the paths of the report files.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import dataclasses
+import os
+import socket
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.config import ServiceConfig, parse_config
+from companion.errors import CompanionError, ConfigError
+from companion.keys import load_toml
+from companion.report import Score, score
+from companion.service import RunResult, Service
+from companion.sim.scenario import Scenario, load_scenario, scenario_to_dict
+from sitl.cli import resolve_mission
+from sitl.faults import parse_faults
+from sitl.runner import Sitl
+
+__all__ = ["DemoResult", "fly", "main", "service_config"]
+
+FloatArray = NDArray[np.float64]
+FENCE_MARGIN_M = 5.0
+EXIT_OK, EXIT_ERROR, EXIT_USAGE = 0, 1, 2
+
+
+def free_udp_port() -> int:
+    """A UDP port on loopback that nobody uses now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _latlon(scenario: Scenario, xy_m: FloatArray) -> list[list[float]]:
+    """World points (x east, y north) -> [lat, lon]."""
+    lat, lon, _ = scenario.geo.local_ned().ned_to_geodetic(xy_m[:, 1], xy_m[:, 0],
+                                                              np.zeros(len(xy_m)))
+    return [[float(a), float(b)] for a, b in zip(lat, lon, strict=True)]
+
+
+def service_config(scenario: Scenario, sitl: Sitl, out_dir: Path,
+                   **overrides: dict[str, Any]) -> ServiceConfig:
+    """sitl/service.toml with the scenario's area, flight, filter and this SITL's addresses."""
+    base = Path(str(resources.files("sitl") / "service.toml"))
+    data: dict[str, Any] = load_toml(base, "configuration")
+    w, h = scenario.world.size_m
+    box = np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]])
+    m = FENCE_MARGIN_M
+    fence = box + np.array([[-m, -m], [m, -m], [m, m], [-m, m]])
+    r, v = scenario.robot, scenario.vehicle
+    data["vehicle"]["connection"] = sitl.mavlink_url
+    data["camera"] = {"source": sitl.camera_url, "kind": "mjpeg"}
+    data["search"].update(area=_latlon(scenario, box), altitude_m=v.altitude_m,
+                          speed_m_s=r.speed_m_s, lane_spacing_m=r.lane_spacing_m,
+                          sweeps=r.sweeps, planner=r.planner, heading_deg=v.heading_deg)
+    data["safety"].update(geofence=_latlon(scenario, fence),
+                          max_alt_m=max(data["safety"]["max_alt_m"], v.altitude_m + 5.0))
+    data["filter"] = scenario_to_dict(scenario)["filter"]
+    data["output"]["dir"] = str(out_dir.resolve())
+    for table, values in overrides.items():
+        data.setdefault(table, {}).update(values)
+    return parse_config(data, base=base.parent)
+
+
+@dataclass(frozen=True)
+class DemoResult:
+    """The service's run and its score against the truth."""
+
+    run: RunResult
+    score: Score
+    truth_xy_m: FloatArray  # search frame
+    tracks_xy_m: FloatArray
+
+
+async def fly(scenario: Scenario, *, speedup: float, out_dir: Path, faults: str = "",
+              announce: Any = None, **overrides: dict[str, Any]) -> DemoResult:
+    """One whole SITL mission flown by the service."""
+    sitl = Sitl(scenario, speedup=speedup, faults=parse_faults(faults),
+                mavlink_port=free_udp_port())
+    with sitl:
+        config = service_config(scenario, sitl, out_dir, **overrides)
+        service = Service(config, camera=scenario.camera, clock=sitl.clock.now_s,
+                          time_scale=speedup, announce=announce or (lambda _: None))
+        run = await service.run()
+        end_s = sitl.clock.now_s()
+    frame = service.pipeline.frame
+    tags = sitl.world.tags(end_s)
+    truth = []
+    for tag in tags:
+        lat, lon, _ = scenario.geo.local_ned().ned_to_geodetic(tag.north_m, tag.east_m, 0.0)
+        e, n = frame.utm.geodetic_to_utm(lat, lon)
+        truth.append(frame.from_utm(np.array([float(e), float(n)])))
+    truth_xy = np.array(truth).reshape(-1, 2)
+    tracks_xy = np.array([[t.easting_m, t.northing_m] for t in run.tracks]).reshape(-1, 2)
+    tracks_xy = frame.from_utm(tracks_xy)
+    return DemoResult(run, score(tracks_xy, truth_xy), truth_xy, tracks_xy)
+
+
+def report(result: DemoResult) -> str:
+    """The table the command prints."""
+    s = result.score
+    lines = [f"{'target':>6} {'x m':>7} {'y m':>7} {'error m':>8}"]
+    for i, (xy, err) in enumerate(zip(result.truth_xy_m, s.errors_m, strict=True)):
+        shown = f"{err:8.2f}" if np.isfinite(err) else "  missed"
+        lines.append(f"{i:>6} {xy[0]:7.2f} {xy[1]:7.2f} {shown}")
+    found = len(s.errors_m) - s.missed
+    lines.append(f"confirmed {len(result.run.tracks)} tracks: {found} of {len(s.errors_m)} "
+                 f"targets found, {s.missed} missed, {s.false_tracks} false")
+    out = result.run.out_dir
+    lines.append(f"reports: {out / 'tracks.geojson'}, {out / 'tracks.csv'}, "
+                 f"{out / 'steps.jsonl'}, {out / 'events.jsonl'}")
+    return "\n".join(lines)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command's arguments."""
+    parser = argparse.ArgumentParser(prog="companion-demo", description=__doc__.splitlines()[0])
+    parser.add_argument("scenario", nargs="?", default="field-5-tags",
+                        help="a SITL scenario (default: field-5-tags, the paper's field test)")
+    parser.add_argument("--speedup", type=float, default=4.0,
+                        help="simulated seconds per wall second (default 4)")
+    parser.add_argument("--faults", default="", help="fault plan (see companion-sitl --help)")
+    parser.add_argument("--flavour", choices=("px4", "ardupilot"), default=None,
+                        help="override the scenario's autopilot")
+    parser.add_argument("--out", type=Path, default=Path("out/sitl"), help="report folder")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of `companion-demo`."""
+    args = build_parser().parse_args(argv)
+    try:
+        if not args.speedup > 0:
+            raise ConfigError("--speedup", f"must be > 0, got {args.speedup}")
+        scenario = load_scenario(resolve_mission(args.scenario))
+        if args.flavour:
+            scenario = dataclasses.replace(
+                scenario, vehicle=dataclasses.replace(scenario.vehicle, flavour=args.flavour))
+        print(f"companion-demo: {scenario.name} ({scenario.vehicle.flavour}), speed-up "
+              f"{args.speedup:g}x", flush=True)
+        result = asyncio.run(fly(scenario, speedup=args.speedup, out_dir=args.out,
+                                 faults=args.faults,
+                                 announce=lambda text: print(f"  {text}", flush=True)))
+        print(report(result))
+        return EXIT_OK if result.score.missed == 0 and result.score.false_tracks == 0 else 1
+    except ConfigError as exc:
+        print(f"companion-demo: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        return EXIT_ERROR
+    except (CompanionError, OSError) as exc:
+        if os.environ.get("COMPANION_DEBUG"):
+            raise
+        print(f"companion-demo: error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    except Exception as exc:  # the last line of defence: no traceback at a user
+        if os.environ.get("COMPANION_DEBUG"):
+            raise
+        print(f"companion-demo: internal error: {type(exc).__name__}: {exc} "
+              "(set COMPANION_DEBUG=1 for the traceback)", file=sys.stderr)
+        return EXIT_ERROR
+
+
+if __name__ == "__main__":
+    sys.exit(main())
