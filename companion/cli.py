@@ -1,4 +1,4 @@
-"""The `companion` command: simulate one scenario, or run the paper's whole study.
+"""The `companion` command: the onboard service, its configuration check, and the paper's study.
 
 Exit status: 0 on success, 2 for a bad scenario file or arguments (one line on standard error
 that names the key), 1 for anything else. Standard output carries only results; progress and
@@ -95,6 +95,31 @@ def _check_config(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _run(args: argparse.Namespace) -> int:
+    import asyncio
+    import signal
+
+    from companion.config import load_config
+    from companion.service import Service
+    from companion.vehicle.mavsdk_link import route_mavsdk_log
+
+    config = load_config(args.config)
+    route_mavsdk_log(lambda line: print(line, file=sys.stderr, flush=True))
+
+    async def fly() -> int:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+        service = Service(config, announce=lambda text: print(text, file=sys.stderr, flush=True))
+        result = await service.run(stop)
+        print(json.dumps({"out_dir": str(result.out_dir), "state": result.mission_state,
+                          "confirmed": len(result.tracks), **result.counters}))
+        return EXIT_OK
+
+    return asyncio.run(fly())
+
+
 def _positive_int(text: str) -> int:
     value = int(text)
     if value < 1:
@@ -134,6 +159,10 @@ def build_parser() -> argparse.ArgumentParser:
     learn.add_argument("--steps", type=_positive_int, default=1200, help="steps per trajectory")
     learn.add_argument("--seed", type=int, default=1000, help="seed of the training set")
     learn.set_defaults(run=_learn_gp)
+
+    run = sub.add_parser("run", help="the onboard service: search, track and fly (Ctrl-C stops)")
+    run.add_argument("--config", type=Path, required=True, help="the service's TOML configuration")
+    run.set_defaults(run=_run)
 
     check = sub.add_parser("check-config", help="validate a service configuration file and exit")
     check.add_argument("config", type=Path, help="the service's TOML configuration")

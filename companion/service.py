@@ -138,6 +138,7 @@ class Service:
         self._progress = 0
         self._limits: GateLimits | None = None
         self._events: _JsonLines | None = None
+        self._announced: set[int] = set()
 
     # -- configuration -----------------------------------------------------------------------
 
@@ -271,6 +272,7 @@ class Service:
                 await self._execute(link, command)
             if self._stream is not None:
                 await self._send_setpoint(link, period_s)
+            await self._announce_targets(link)
             st = self.view.status
             if self.mission.state in final and st is not None and not st.armed:
                 return  # landed and disarmed after the end
@@ -307,6 +309,24 @@ class Service:
         except VehicleError as exc:
             self.counters["command_errors"] += 1
             self._event("command_failed", kind=kind.value, error=str(exc))
+
+    async def _announce_targets(self, link: MavsdkLink) -> None:
+        """One STATUSTEXT per newly confirmed target: its id and position (any GCS shows it)."""
+        state, frame = self.pipeline.state, self.pipeline.frame
+        if state is None:
+            return
+        tracks = state.tracks
+        for i in np.flatnonzero(tracks.confirmed):
+            track_id = int(tracks.ids[i])
+            if track_id in self._announced:
+                continue
+            self._announced.add(track_id)
+            lat, lon = frame.to_latlon(tracks.means[i, :2])[0]
+            text = f"target {track_id}: {lat:.6f} {lon:.6f}"
+            self._event("target", id=track_id, lat_deg=float(lat), lon_deg=float(lon))
+            self.announce(text)
+            with contextlib.suppress(VehicleError):
+                await link.status_text(text, "notice")
 
     # -- setpoints ---------------------------------------------------------------------------
 

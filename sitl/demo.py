@@ -30,6 +30,7 @@ from companion.keys import load_toml
 from companion.report import Score, score
 from companion.service import RunResult, Service
 from companion.sim.scenario import Scenario, load_scenario, scenario_to_dict
+from companion.vehicle.mavsdk_link import route_mavsdk_log
 from sitl.cli import resolve_mission
 from sitl.faults import parse_faults
 from sitl.runner import Sitl
@@ -153,6 +154,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.flavour:
             scenario = dataclasses.replace(
                 scenario, vehicle=dataclasses.replace(scenario.vehicle, flavour=args.flavour))
+        route_mavsdk_log(lambda line: print(f"  {line}", file=sys.stderr, flush=True))
         print(f"companion-demo: {scenario.name} ({scenario.vehicle.flavour}), speed-up "
               f"{args.speedup:g}x", flush=True)
         result = asyncio.run(fly(scenario, speedup=args.speedup, out_dir=args.out,

@@ -27,12 +27,13 @@ from mavsdk.asyncio.plugins.action import ActionAsync
 from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
 from mavsdk.asyncio.plugins.offboard import OffboardAsync, PositionNedYaw
 from mavsdk.asyncio.plugins.telemetry import FlightMode, TelemetryAsync
+from mavsdk.logging import LogLevel, log_subscribe
 from mavsdk.plugins.mavlink_direct.mavlink_direct import MavlinkMessage
 
 from companion.errors import CompanionError
 
 __all__ = ["ONBOARD_COMPONENT_ID", "FlightMode", "MavsdkLink", "Status", "TelemetrySink",
-           "VehicleError"]
+           "VehicleError", "route_mavsdk_log"]
 
 ONBOARD_COMPONENT_ID = 195  # MAV_COMP_ID_ONBOARD_COMPUTER: what MAVSDK uses for a companion
 STATUSTEXT_MAX_CHARS = 50
@@ -69,6 +70,16 @@ class TelemetrySink(Protocol):
     def on_attitude(self, t_s: float, q_wxyz: tuple[float, float, float, float]) -> None: ...
 
     def on_status(self, status: Status) -> None: ...
+
+
+def route_mavsdk_log(sink: Callable[[str], None]) -> None:
+    """Send MAVSDK's warnings and errors to sink as plain lines; drop its debug and info."""
+    def forward(level: LogLevel, message: str, file: str | None, line: int) -> bool:
+        if level >= LogLevel.WARN:
+            sink(f"mavsdk {level.name.lower()}: {message}")
+        return True  # not MAVSDK's own coloured output
+
+    log_subscribe(forward)
 
 
 def _fields(message: Any) -> dict[str, Any]:
