@@ -217,4 +217,5 @@ class Pipeline:
             vehicle_xy_m=None if blind else np.asarray(scan.sensor_xy),
             r_cov_m2=np.asarray(scan.r_cov), components=self.state.mixture.size,
             weight_sum=float(self.state.mixture.total_weight),
-            confirmed=int(tracks.confirmed.sum()))
+            confirmed=int(tracks.confirmed.sum()),
+            extra={"confirmed_ids": tracks.ids[tracks.confirmed].tolist()})

@@ -31,6 +31,7 @@ from companion.report import Score, score
 from companion.service import RunResult, Service
 from companion.sim.scenario import Scenario, load_scenario, scenario_to_dict
 from companion.vehicle.mavsdk_link import route_mavsdk_log
+from sitl.autopilot import Snapshot
 from sitl.cli import resolve_mission
 from sitl.faults import parse_faults
 from sitl.runner import Sitl
@@ -88,19 +89,26 @@ class DemoResult:
     score: Score
     truth_xy_m: FloatArray  # search frame
     tracks_xy_m: FloatArray
+    autopilot: Snapshot  # the mock autopilot's state at the end
 
 
 async def fly(scenario: Scenario, *, speedup: float, out_dir: Path, faults: str = "",
-              announce: Any = None, **overrides: dict[str, Any]) -> DemoResult:
-    """One whole SITL mission flown by the service."""
+              announce: Any = None, stop_after_s: float | None = None,
+              **overrides: dict[str, Any]) -> DemoResult:
+    """One whole SITL mission flown by the service (stopped at stop_after_s simulated s)."""
     sitl = Sitl(scenario, speedup=speedup, faults=parse_faults(faults),
                 mavlink_port=free_udp_port())
     with sitl:
         config = service_config(scenario, sitl, out_dir, **overrides)
         service = Service(config, camera=scenario.camera, clock=sitl.clock.now_s,
                           time_scale=speedup, announce=announce or (lambda _: None))
-        run = await service.run()
+        stop = asyncio.Event()
+        if stop_after_s is not None:
+            asyncio.get_running_loop().call_later(
+                max(stop_after_s - sitl.clock.now_s(), 0.0) / speedup, stop.set)
+        run = await service.run(stop)
         end_s = sitl.clock.now_s()
+        final = sitl.autopilot.snapshot()
     frame = service.pipeline.frame
     tags = sitl.world.tags(end_s)
     truth = []
@@ -111,7 +119,7 @@ async def fly(scenario: Scenario, *, speedup: float, out_dir: Path, faults: str 
     truth_xy = np.array(truth).reshape(-1, 2)
     tracks_xy = np.array([[t.easting_m, t.northing_m] for t in run.tracks]).reshape(-1, 2)
     tracks_xy = frame.from_utm(tracks_xy)
-    return DemoResult(run, score(tracks_xy, truth_xy), truth_xy, tracks_xy)
+    return DemoResult(run, score(tracks_xy, truth_xy), truth_xy, tracks_xy, final)
 
 
 def report(result: DemoResult) -> str:

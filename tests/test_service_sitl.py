@@ -1,0 +1,102 @@
+"""The service flies SITL missions over the real MAVSDK: targets, geofence, pilot, camera."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from companion.sim.scenario import Scenario, load_scenario
+from sitl.cli import sitl_scenarios
+from sitl.demo import FENCE_MARGIN_M, DemoResult, fly
+from sitl.modes import Behaviour
+from sitl.runner import autopilot_config
+
+SPEEDUP = 4.0
+SETPOINT_PERIOD_S = 0.1  # mission.setpoint_rate_hz = 10
+HEARTBEAT_PERIOD_S = 1.0  # the mode reaches the service in the autopilot's heartbeat
+
+
+def _scenario(flavour: str = "px4") -> Scenario:
+    s = load_scenario(sitl_scenarios()["field-5-tags"])
+    return dataclasses.replace(s, vehicle=dataclasses.replace(s.vehicle, flavour=flavour))
+
+
+def _lines(path: Path) -> list[dict[str, Any]]:
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def _fly(scenario: Scenario, tmp_path: Path, **kwargs: Any) -> DemoResult:
+    return asyncio.run(fly(scenario, speedup=SPEEDUP, out_dir=tmp_path, **kwargs))
+
+
+@pytest.mark.parametrize("flavour", ["px4", "ardupilot"])
+def test_field_experiment_mission(flavour: str, tmp_path: Path) -> None:
+    scenario = _scenario(flavour)
+    result = _fly(scenario, tmp_path)
+    assert result.run.mission_state == "done"
+    assert result.score.missed == 0, result.score.errors_m
+    assert np.all(result.score.errors_m < 1.0), result.score.errors_m
+    gaps = np.linalg.norm(result.tracks_xy_m[:, None] - result.truth_xy_m[None], axis=2)
+    assert np.all(gaps.min(axis=1) <= 3.0)  # no confirmed track far from every target
+    assert not result.autopilot.armed and result.autopilot.vehicle.on_ground  # it landed
+
+    # Every setpoint sent, in the autopilot's local frame, lies inside the geofence: the search
+    # area grown by FENCE_MARGIN_M, here checked in the world frame the scenario defines.
+    config = autopilot_config(scenario)
+    origin_ne = np.array(config.home_ned) + (
+        np.array(config.ekf_origin_offset_ned) if flavour == "ardupilot" else 0.0)
+    setpoints = [e for e in _lines(result.run.out_dir / "events.jsonl")
+                 if e["event"] == "setpoint"]
+    assert len(setpoints) > 500
+    world_ne = np.array([[e["north_m"], e["east_m"]] for e in setpoints]) + origin_ne
+    w_m, h_m = scenario.world.size_m
+    margin = FENCE_MARGIN_M + 1e-6
+    assert np.all((world_ne[:, 0] >= -margin) & (world_ne[:, 0] <= h_m + margin))
+    assert np.all((world_ne[:, 1] >= -margin) & (world_ne[:, 1] <= w_m + margin))
+    altitudes = -np.array([e["down_m"] for e in setpoints])
+    assert np.all((altitudes >= 3.0 - 1e-6) & (altitudes <= 15.0 + 1e-6))  # the safety band
+
+    steps = _lines(result.run.out_dir / "steps.jsonl")
+    assert sum(s["blind"] is None for s in steps) > 100
+    geojson = json.loads((result.run.out_dir / "tracks.geojson").read_text())
+    assert len(geojson["features"]) == len(result.run.tracks) == 5
+
+
+def test_pilot_takeover_stops_commanding_and_estimating_goes_on(tmp_path: Path) -> None:
+    takeover_s = 70.0
+    result = _fly(_scenario(), tmp_path, faults=f"pilot@{takeover_s:g}:posctl",
+                  stop_after_s=takeover_s + 25.0, mission={"resume_on_pilot_offboard": False})
+    events = _lines(result.run.out_dir / "events.jsonl")
+    released = [e for e in events if e["event"] == "command" and e["kind"] == "stop_setpoints"]
+    assert len(released) == 1
+    # It notices in the next heartbeat and lets go within one setpoint period of that.
+    assert takeover_s <= released[0]["t_s"] <= takeover_s + HEARTBEAT_PERIOD_S + SETPOINT_PERIOD_S
+    snap = result.autopilot
+    assert snap.last_setpoint_clock_s <= released[0]["t_s"] + SETPOINT_PERIOD_S
+    assert snap.behaviour is Behaviour.POSITION  # never taken back
+    assert result.run.mission_state == "pilot_has_control"
+    assert not [e for e in events if e["event"] == "command" and e["kind"] == "start_offboard"
+                and e["t_s"] > takeover_s]
+    steps = _lines(result.run.out_dir / "steps.jsonl")
+    seeing = [s for s in steps if s["t_s"] > released[0]["t_s"] + 1.0 and s["blind"] is None]
+    assert len(seeing) > 30  # still estimating from the camera while the pilot flies
+
+
+def test_a_black_camera_loses_no_confirmed_track(tmp_path: Path) -> None:
+    black_s, black_for_s = 90.0, 10.0
+    result = _fly(_scenario(), tmp_path, faults=f"black@{black_s:g}+{black_for_s:g}",
+                  stop_after_s=black_s + black_for_s + 10.0)
+    steps = _lines(result.run.out_dir / "steps.jsonl")
+    before = [s for s in steps if s["t_s"] < black_s]
+    during = [s for s in steps if black_s + 0.5 < s["t_s"] < black_s + black_for_s]
+    after = [s for s in steps if s["t_s"] > black_s + black_for_s + 0.5]
+    confirmed_before = set(before[-1]["confirmed_ids"])
+    assert len(confirmed_before) >= 2
+    assert during and all(s["blind"] == "blank frame" for s in during)
+    assert all(confirmed_before <= set(s["confirmed_ids"]) for s in during + after)
