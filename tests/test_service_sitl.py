@@ -6,7 +6,7 @@ import asyncio
 import dataclasses
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import pytest
@@ -22,7 +22,7 @@ SETPOINT_PERIOD_S = 0.1  # mission.setpoint_rate_hz = 10
 HEARTBEAT_PERIOD_S = 1.0  # the mode reaches the service in the autopilot's heartbeat
 
 
-def _scenario(flavour: str = "px4") -> Scenario:
+def _scenario(flavour: Literal["px4", "ardupilot"] = "px4") -> Scenario:
     s = load_scenario(sitl_scenarios()["field-5-tags"])
     return dataclasses.replace(s, vehicle=dataclasses.replace(s.vehicle, flavour=flavour))
 
@@ -36,7 +36,7 @@ def _fly(scenario: Scenario, tmp_path: Path, **kwargs: Any) -> DemoResult:
 
 
 @pytest.mark.parametrize("flavour", ["px4", "ardupilot"])
-def test_field_experiment_mission(flavour: str, tmp_path: Path) -> None:
+def test_field_experiment_mission(flavour: Literal["px4", "ardupilot"], tmp_path: Path) -> None:
     scenario = _scenario(flavour)
     result = _fly(scenario, tmp_path)
     assert result.run.mission_state == "done"
