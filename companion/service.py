@@ -134,7 +134,7 @@ class Service:
         self._stream: ms.Stream | None = None
         self._previous: Setpoint | None = None
         self._carrot_xy: FloatArray | None = None
-        self._planner = self._make_planner()
+        self._planner: Planner | None = None  # made when the search starts, from where we are
         self._progress = 0
         self._limits: GateLimits | None = None
         self._events: _JsonLines | None = None
@@ -150,10 +150,12 @@ class Service:
             end=m.end, sweeps=s.sweeps if s.planner == "lawnmower" else 1,
             time_limit_s=m.time_limit_s, end_action=m.end_action)
 
-    def _make_planner(self) -> Planner:
+    def _make_planner(self, start_xy: FloatArray) -> Planner:
+        """The configured planner; a lawn mower's passes each end where the search started."""
         s, world = self.config.search, self.pipeline.frame.world
         if s.planner == "lawnmower":
-            return LawnMower(lawnmower_path(world, np.zeros(2), s.lane_spacing_m, s.sweeps))
+            start = world.clip(start_xy)
+            return LawnMower(lawnmower_path(world, start, s.lane_spacing_m, s.sweeps))
         return NearestGaussian() if s.planner == "nearest-gaussian" else LargestGaussian()
 
     # -- the run -----------------------------------------------------------------------------
@@ -344,6 +346,8 @@ class Service:
         carrot = vehicle_xy if self._carrot_xy is None else self._carrot_xy
         if state is None:
             return carrot
+        if self._planner is None:
+            self._planner = self._make_planner(vehicle_xy)
         waypoint, self._progress = self._planner.next_waypoint(
             carrot, state.mixture, state.tracks, self.pipeline.frame.world, self._progress)
         if waypoint is None:

@@ -100,3 +100,13 @@ def test_a_black_camera_loses_no_confirmed_track(tmp_path: Path) -> None:
     assert len(confirmed_before) >= 2
     assert during and all(s["blind"] == "blank frame" for s in during)
     assert all(confirmed_before <= set(s["confirmed_ids"]) for s in during + after)
+
+
+def test_moving_targets_are_followed(tmp_path: Path) -> None:
+    # After two passes the lawn mower ends over the middle of the yard, where the vehicle holds
+    # and keeps tracking what it sees.
+    scenario = load_scenario(sitl_scenarios()["moving-5-targets"])
+    result = _fly(scenario, tmp_path, stop_after_s=100.0, mission={"end_action": "hold"})
+    assert result.run.mission_state == "done"
+    assert result.score.missed == 0, result.score.errors_m
+    assert np.all(result.score.errors_m < 2.0), result.score.errors_m

@@ -1,0 +1,114 @@
+"""End-to-end speed of the service's pipeline on a 30 fps camera with five tags in view.
+
+A thread publishes rendered frames over the SITL's MJPEG stream at 30 frames per second, each
+stamped with its capture time. The service's newest-frame grabber reads them, and each newest
+frame goes through the pipeline (detect, project, GM-PHD step) as fast as the machine allows.
+It prints, at 640x480 and 1280x720: the frames per second processed, the frames skipped (the
+grabber drops stale frames instead of queueing them), and the latency from capture to updated
+tracks (median, p95, and its first and last fifths: a backlog would make the last grow).
+
+    python benchmarks/bench_pipeline.py [--seconds 10] [--fps 30]
+"""
+
+from __future__ import annotations
+
+import argparse
+import threading
+import time
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.camera.source import LatestFrameGrabber, MjpegSource
+from companion.config import parse_config
+from companion.geo import LocalNed
+from companion.pipeline import Pipeline
+from companion.vision.camera import BodyPose, CameraModel
+from companion.vision.projection import GeoPose
+from sitl.camera import Renderer, Tag
+from sitl.stream import MjpegServer
+
+ALTITUDE_M = 8.0
+ORIGIN = LocalNed(47.397742, 8.545594, 488.0)
+TAGS = [Tag(i, n, e, 0.5, 0.4 * i) for i, (n, e) in
+        enumerate([(0.0, 0.0), (3.0, 4.0), (-3.0, 5.0), (2.5, -5.5), (-3.5, -4.0)])]
+
+
+def _config(camera: CameraModel) -> Any:
+    corners = [ORIGIN.ned_to_geodetic(n, e, 0.0)[:2] for n, e in
+               ((-30, -30), (-30, 30), (30, 30), (30, -30))]
+    return parse_config({
+        "camera": {"source": "bench", "width_px": camera.width_px,
+                   "height_px": camera.height_px},
+        "search": {"area": [[float(a), float(b)] for a, b in corners]},
+        "detector": {"threads": 2},
+    })
+
+
+def _publisher(server: MjpegServer, frames: list[NDArray[np.uint8]], fps: float,
+               stop: threading.Event, published: list[int]) -> None:
+    period_s, next_s, k = 1.0 / fps, time.monotonic(), 0
+    while not stop.is_set():
+        server.publish(frames[k % len(frames)], time.monotonic())
+        published[0] += 1
+        k += 1
+        next_s += period_s
+        stop.wait(max(next_s - time.monotonic(), 0.0))
+
+
+def bench(width_px: int, height_px: int, seconds: float, fps: float) -> None:
+    camera = CameraModel.from_hfov(90.0, width_px, height_px)
+    renderer = Renderer(camera, texture_seed=1)
+    rng = np.random.default_rng(0)
+    pose = BodyPose(0.0, 0.0, 0.0, -ALTITUDE_M, (1.0, 0.0, 0.0, 0.0))
+    frames = [renderer.render(pose, TAGS, rng) for _ in range(30)]
+    pipeline = Pipeline(_config(camera), camera)
+    lat, lon, alt = (float(v) for v in ORIGIN.ned_to_geodetic(0.0, 0.0, -ALTITUDE_M))
+    stop, published = threading.Event(), [0]
+    with MjpegServer() as server:
+        publisher = threading.Thread(target=_publisher,
+                                     args=(server, frames, fps, stop, published))
+        publisher.start()
+        grabber = LatestFrameGrabber(MjpegSource(server.url)).start()
+        latencies_ms: list[float] = []
+        detections = 0
+        try:
+            grabber.get(5.0)  # connected and flowing
+            start = time.monotonic()
+            while time.monotonic() - start < seconds:
+                frame = grabber.get(1.0)
+                if frame is None or frame.capture_time_s is None:
+                    continue
+                geo = GeoPose(frame.capture_time_s, lat, lon, alt, ALTITUDE_M,
+                              (1.0, 0.0, 0.0, 0.0))
+                record = pipeline.step(frame.image, geo)
+                detections += record.detections
+                latencies_ms.append(1e3 * (time.monotonic() - frame.capture_time_s))
+            elapsed = time.monotonic() - start
+        finally:
+            stop.set()
+            publisher.join()
+            grabber.stop()
+    lat_ms = np.array(latencies_ms)
+    fifth = max(len(lat_ms) // 5, 1)
+    print(f"{width_px}x{height_px}: {len(lat_ms) / elapsed:5.1f} frames/s processed of "
+          f"{published[0] / elapsed:4.1f} published, {grabber.dropped} skipped by the grabber, "
+          f"{detections / max(len(lat_ms), 1):.1f} tags per frame")
+    print(f"  latency capture -> tracks: median {np.median(lat_ms):.1f} ms, "
+          f"p95 {np.percentile(lat_ms, 95):.1f} ms; first fifth median "
+          f"{np.median(lat_ms[:fifth]):.1f} ms, last fifth {np.median(lat_ms[-fifth:]):.1f} ms")
+
+
+def main() -> None:
+    """Print the figures."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=10.0, help="per resolution")
+    parser.add_argument("--fps", type=float, default=30.0, help="camera frame rate")
+    args = parser.parse_args()
+    for width_px, height_px in ((640, 480), (1280, 720)):
+        bench(width_px, height_px, args.seconds, args.fps)
+
+
+if __name__ == "__main__":
+    main()
