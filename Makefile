@@ -1,4 +1,5 @@
-# Two entry points (see README.md): `make run` (the main job) and `make test` (the test suite).
+# Entry points (see README.md): `make run` (the main job: the service flies the SITL field
+# experiment), `make test` (the test suite), `make study` (the paper's simulation study).
 # Each creates and fills the virtual environment .venv when it is missing or out of date.
 PYTHON ?= python3
 VENV ?= .venv
@@ -7,7 +8,7 @@ STAMP := $(VENV)/.installed
 SEEDS ?= 10
 OUT ?= out/study
 
-.PHONY: run test bench clean
+.PHONY: run study test bench clean
 
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "Python >= 3.11 is needed; set PYTHON=python3.11")'
@@ -17,6 +18,9 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 run: $(STAMP)
+	$(BIN)/companion-demo field-5-tags --out out/sitl
+
+study: $(STAMP)
 	$(BIN)/companion study --seeds $(SEEDS) --out $(OUT)
 
 test: $(STAMP)
@@ -26,6 +30,8 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_filter.py
+	$(BIN)/python benchmarks/bench_render.py
+	$(BIN)/python benchmarks/bench_pipeline.py
 
 clean:
 	rm -rf $(VENV) out .mypy_cache .pytest_cache .ruff_cache
