@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 from companion import mission as ms
 from companion.camera.source import Frame, LatestFrameGrabber, open_source
 from companion.config import CameraConfig, ServiceConfig
+from companion.errors import CompanionError
 from companion.geo import LocalNed
 from companion.pipeline import Pipeline, StepRecord
 from companion.plan.gate import GateLimits, Setpoint, gate
@@ -45,6 +46,7 @@ from companion.plan.planners import (
     move_towards,
 )
 from companion.report import TrackRecord, confirmed_tracks, write_csv, write_geojson
+from companion.sim.plots import plot_flight
 from companion.vehicle.mavsdk_link import FlightMode, MavsdkLink, VehicleError
 from companion.vehicle.view import VehicleView
 from companion.vision.calibration import load_calibration
@@ -59,6 +61,7 @@ MIN_HEIGHT_M = 1.0  # lower than this the camera sees too little of the ground t
 TELEMETRY_STALE_S = 2.0  # no telemetry for this long: the link is down
 BATTERY_LOW_PERCENT = 20.0
 REACHED_M = 1.5  # the vehicle is this close to a waypoint: the planner moves on
+STREAM_SETTLE_S = 0.5  # PX4 accepts OFFBOARD only after setpoints have streamed (> 2 Hz)
 
 _MODES = {
     FlightMode.OFFBOARD: ms.FlightMode.OFFBOARD, FlightMode.HOLD: ms.FlightMode.HOLD,
@@ -139,6 +142,7 @@ class Service:
         self._limits: GateLimits | None = None
         self._events: _JsonLines | None = None
         self._announced: set[int] = set()
+        self._streaming_since_s: float | None = None
 
     # -- configuration -----------------------------------------------------------------------
 
@@ -263,7 +267,8 @@ class Service:
             position_ok=fresh and view.local_origin() is not None,
             coverage_passes=passes, confirmed_targets=confirmed,
             expected_targets=self.config.search.expected_targets,
-            setpoints_streaming=self._stream is not None and self._previous is not None)
+            setpoints_streaming=self._streaming_since_s is not None
+            and self.clock() - self._streaming_since_s >= STREAM_SETTLE_S)
 
     async def _control(self, link: MavsdkLink, stop: asyncio.Event) -> None:
         period_s = 1.0 / self.config.mission.setpoint_rate_hz
@@ -291,6 +296,7 @@ class Service:
             if kind is ms.CommandKind.STOP_SETPOINTS:
                 link.release()  # at once, and without asking for any mode
                 self._stream, self._previous, self._carrot_xy = None, None, None
+                self._streaming_since_s = None
             elif kind is ms.CommandKind.START_SETPOINTS:
                 self._stream = command.stream
             elif kind is ms.CommandKind.ARM:
@@ -387,6 +393,8 @@ class Service:
             return
         sp = result.setpoint
         await link.set_setpoint(sp.north_m, sp.east_m, sp.down_m, sp.yaw_deg)
+        if self._streaming_since_s is None:
+            self._streaming_since_s = self.clock()
         self._previous = sp
         self.counters["setpoints"] += 1
         self._event("setpoint", north_m=round(sp.north_m, 3), east_m=round(sp.east_m, 3),
@@ -404,4 +412,13 @@ class Service:
                    "counters": self.counters, "utm_epsg": frame.utm.epsg,
                    "tracks": [r.id for r in records]}
         (out / "summary.json").write_text(json.dumps(summary, indent=1))
+        if self.config.output.plots:
+            self._plot(out, records)
         return records
+
+    def _plot(self, out: Path, records: list[TrackRecord]) -> None:
+        steps = [json.loads(line) for line in (out / "steps.jsonl").read_text().splitlines()]
+        try:
+            plot_flight(steps, np.array([[r.easting_m, r.northing_m] for r in records]), out)
+        except CompanionError as exc:  # no matplotlib: the run's data is all there anyway
+            self._event("plots_skipped", reason=str(exc))

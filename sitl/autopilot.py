@@ -135,6 +135,7 @@ class Snapshot:
     clock_s: float  # the SITL clock's time of this state (boot time + t_s)
     online: bool  # False while rebooting: silent, no time base
     last_setpoint_clock_s: float  # SITL clock time of the last setpoint received (-inf: none)
+    setpoints_streaming: bool  # fast enough for OFFBOARD to be accepted now
 
 
 @dataclass
@@ -234,7 +235,8 @@ class MockAutopilot:
         with self._lock:
             return Snapshot(self._t_s, self._boot, self._behaviour, self._armed, self._vehicle,
                             self._battery_percent(), self._boot_wall_s + self._t_s,
-                            self._reboot_until_s < 0.0, self._last_setpoint_clock_s)
+                            self._reboot_until_s < 0.0, self._last_setpoint_clock_s,
+                            self._setpoints_streaming())
 
     # -- the operator and the faults ----------------------------------------------------------
 

@@ -79,6 +79,13 @@ async def _until(stream: AsyncIterator[object], done: object, timeout_s: float) 
     return await asyncio.wait_for(first(), timeout_s)
 
 
+async def _start_offboard(drone: Drone, autopilot: MockAutopilot) -> None:
+    """Start offboard once the autopilot sees the setpoint stream (MAVSDK resends at 20 Hz)."""
+    while not autopilot.snapshot().setpoints_streaming:
+        await asyncio.sleep(0.02)
+    await drone.off.start()
+
+
 async def _take_off(drone: Drone) -> None:
     await _until(drone.tel.subscribe_health(),
                  lambda h: h.is_global_position_ok and h.is_home_position_ok and h.is_armable, 20)
@@ -106,7 +113,7 @@ def test_mission_flight(sitl: tuple[MockAutopilot, int]) -> None:
         async with _connect(port, autopilot.config.flavour) as drone:
             await _take_off(drone)
             await drone.off.set_position_ned(PositionNedYaw(0.0, 0.0, -ALT_M, 0.0))
-            await drone.off.start()
+            await _start_offboard(drone, autopilot)
             await _until(drone.tel.subscribe_flight_mode(), lambda m: m == FlightMode.OFFBOARD, 5)
             for north in (10.0, -10.0):  # two setpoints 20 m apart
                 await _fly_to(drone, north, 0.0)
@@ -126,7 +133,7 @@ def test_pilot_override_and_link_cut(sitl: tuple[MockAutopilot, int]) -> None:
         async with _connect(port, autopilot.config.flavour) as drone:
             await _take_off(drone)
             await drone.off.set_position_ned(PositionNedYaw(0.0, 0.0, -ALT_M, 0.0))
-            await drone.off.start()
+            await _start_offboard(drone, autopilot)
             await _fly_to(drone, 5.0, 0.0)
             # The pilot takes over: the mode changes under MAVSDK, which keeps sending setpoints
             # for a while; the autopilot ignores them and never goes back to OFFBOARD by itself.
@@ -141,7 +148,7 @@ def test_pilot_override_and_link_cut(sitl: tuple[MockAutopilot, int]) -> None:
                 return  # an ArduPilot in GUIDED has no offboard-loss failsafe to show
             # Back in OFFBOARD, the link is cut: setpoints stop arriving, PX4 falls back to its
             # failsafe within COM_OF_LOSS_T and stays there when the link comes back.
-            await drone.off.start()
+            await _start_offboard(drone, autopilot)
             await _until(drone.tel.subscribe_flight_mode(), lambda m: m == FlightMode.OFFBOARD, 5)
             cut_at = autopilot.clock.now_s()
             autopilot.link.faults.cut_until_s = cut_at + 5.0

@@ -112,6 +112,8 @@ def test_telemetry_carries_boot_times_and_commands_fly(
                 assert link.status.armed and link.status.in_air
                 north0, east0 = sink.locals[-1][1:3]
                 await link.set_setpoint(north0 + 6.0, east0, -5.0, 0.0)
+                while not ap.snapshot().setpoints_streaming:  # MAVSDK resends it at 20 Hz
+                    await asyncio.sleep(0.02)
                 await link.start_offboard()
                 await sink.until(lambda: link.status.flight_mode is FlightMode.OFFBOARD, 5.0)
                 await sink.until(lambda: abs(sink.locals[-1][1] - north0 - 6.0) < 0.5, 20.0)

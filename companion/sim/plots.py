@@ -33,6 +33,7 @@ __all__ = [
     "SeriesBand",
     "aggregate",
     "plot_bands",
+    "plot_flight",
     "plot_run",
 ]
 
@@ -373,6 +374,52 @@ def _trajectory_figure(r: SimResult, where: str) -> Figure:
 # ---------------------------------------------------------------------------------------------
 # Helpers
 # ---------------------------------------------------------------------------------------------
+
+
+def plot_flight(steps: Sequence[dict[str, Any]], tracks_en_m: FloatArray, out_dir: Path
+                ) -> list[Path]:
+    """A service run's map (path, footprints, detections, confirmed tracks, UTM) and its counts.
+
+    `steps` are the records of a run's steps.jsonl; tracks_en_m (n, 2) the confirmed tracks'
+    easting and northing. Writes flight-map.png and flight-count.png in out_dir.
+    """
+    _require_matplotlib()
+    seen = [s for s in steps if s.get("vehicle_utm")]
+    path = np.array([s["vehicle_utm"][0] for s in seen]).reshape(-1, 2)
+    meas = [m for s in steps for m in (s.get("measurements_utm") or [])]
+    z = np.array(meas, dtype=np.float64).reshape(-1, 2)
+    tracks = np.asarray(tracks_en_m, dtype=np.float64).reshape(-1, 2)
+    every = max(len(seen) // 40, 1)
+
+    fig = _figure(MAP_FIGSIZE_IN)
+    ax = fig.add_subplot()
+    for s in seen[::every]:
+        outline = np.array(s["region_utm"] + s["region_utm"][:1])
+        ax.plot(outline[:, 0], outline[:, 1], color="0.8", linewidth=0.6)
+    ax.plot(path[:, 0], path[:, 1], color="tab:blue", linewidth=1.0, label="vehicle")
+    ax.scatter(z[:, 0], z[:, 1], s=4, color="tab:orange", label="detections")
+    ax.scatter(tracks[:, 0], tracks[:, 1], s=60, marker="x", color="tab:red",
+               label="confirmed tracks")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("easting (m)")
+    ax.set_ylabel("northing (m)")
+    ax.ticklabel_format(useOffset=True, style="plain")
+    ax.legend(loc="best", fontsize="small")
+    written = [_save(fig, out_dir / "flight-map.png")]
+
+    t = np.array([s["t_s"] for s in steps], dtype=np.float64)
+    fig = _figure(SERIES_FIGSIZE_IN)
+    ax = fig.add_subplot()
+    ax.step(t, [s["confirmed"] for s in steps], where="post", label="confirmed tracks")
+    ax.plot(t, [s["detections"] for s in steps], ".", markersize=2, label="detections per step")
+    blind = np.array([s["blind"] is not None for s in steps])
+    if blind.any():
+        ax.plot(t[blind], np.zeros(int(blind.sum())), "|", color="tab:gray", label="blind steps")
+    ax.set_xlabel("autopilot time (s)")
+    ax.set_ylabel("count")
+    ax.legend(loc="best", fontsize="small")
+    written.append(_save(fig, out_dir / "flight-count.png"))
+    return written
 
 
 def _require_matplotlib() -> None:
