@@ -11,7 +11,7 @@ import argparse
 import json
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from importlib import resources
 from pathlib import Path
 
@@ -170,29 +170,37 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the `companion` command."""
-    args = build_parser().parse_args(argv)
+def run_command(prog: str, body: Callable[[], int]) -> int:
+    """Run a command's body; errors become one line on stderr and an exit status, no traceback.
+
+    ConfigError (a bad file, key or argument) exits 2; any other error exits 1, with the
+    traceback only when COMPANION_DEBUG is set.
+    """
     try:
-        code: int = args.run(args)
-        return code
+        return body()
     except ConfigError as exc:
-        print(f"companion: {exc}", file=sys.stderr)
+        print(f"{prog}: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return EXIT_ERROR
     except (CompanionError, OSError) as exc:
         if os.environ.get("COMPANION_DEBUG"):
             raise
-        print(f"companion: error: {exc}", file=sys.stderr)
-        return EXIT_ERROR
-    except KeyboardInterrupt:
-        print("companion: interrupted", file=sys.stderr)
+        print(f"{prog}: error: {exc}", file=sys.stderr)
         return EXIT_ERROR
     except Exception as exc:  # the last line of defence: no traceback at a user
         if os.environ.get("COMPANION_DEBUG"):
             raise
-        print(f"companion: internal error: {type(exc).__name__}: {exc} "
+        print(f"{prog}: internal error: {type(exc).__name__}: {exc} "
               "(set COMPANION_DEBUG=1 for the traceback)", file=sys.stderr)
         return EXIT_ERROR
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the `companion` command."""
+    args = build_parser().parse_args(argv)
+    return run_command("companion", lambda: int(args.run(args)))
 
 
 if __name__ == "__main__":

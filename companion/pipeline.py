@@ -92,7 +92,6 @@ class StepRecord:
     components: int
     weight_sum: float
     confirmed: int
-    step_ms: float = 0.0
     extra: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self, frame: SearchFrame) -> dict[str, Any]:
@@ -108,7 +107,7 @@ class StepRecord:
                 "vehicle_utm": en(None if self.vehicle_xy_m is None else self.vehicle_xy_m[None]),
                 "r_cov_m2": np.round(self.r_cov_m2, 4).tolist(), "components": self.components,
                 "weight_sum": round(self.weight_sum, 4), "confirmed": self.confirmed,
-                "step_ms": round(self.step_ms, 3), **self.extra}
+                **self.extra}
 
 
 def _shrunk(polygon_xy: FloatArray, margin_m: float) -> FloatArray:
@@ -154,7 +153,8 @@ class Pipeline:
         last = self._last_boot_s
         if last is not None and boot_t_s < last - REBOOT_JUMP_S:
             self._time_offset_s += last - boot_t_s  # a reboot: carry on from where we were
-        self._last_boot_s = boot_t_s if last is None else max(boot_t_s, last - REBOOT_JUMP_S)
+            last = None
+        self._last_boot_s = boot_t_s if last is None else max(last, boot_t_s)
         t_s = boot_t_s + self._time_offset_s
         if self.state is not None:
             t_s = max(t_s, self.state.t_s)

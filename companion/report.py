@@ -79,7 +79,6 @@ class Score:
 
     errors_m: FloatArray  # (n_true,) distance to the matched track; inf if none within gate
     false_tracks: int  # confirmed tracks matched to no target
-    farthest_false_m: float  # distance from the worst unmatched track to its nearest target
 
     @property
     def missed(self) -> int:
@@ -92,16 +91,11 @@ def score(tracks_xy: FloatArray, truth_xy: FloatArray, gate_m: float = 3.0) -> S
     tracks_xy = np.asarray(tracks_xy, dtype=np.float64).reshape(-1, 2)
     truth_xy = np.asarray(truth_xy, dtype=np.float64).reshape(-1, 2)
     errors = np.full(len(truth_xy), np.inf)
+    matched = 0
     if len(tracks_xy) and len(truth_xy):
         d = np.linalg.norm(truth_xy[:, None] - tracks_xy[None], axis=2)
         rows, cols = linear_sum_assignment(np.where(d <= gate_m, d, 1e9))
         ok = d[rows, cols] <= gate_m
         errors[rows[ok]] = d[rows[ok], cols[ok]]
-        matched = set(cols[ok].tolist())
-    else:
-        d, matched = np.zeros((len(truth_xy), len(tracks_xy))), set()
-    unmatched = [j for j in range(len(tracks_xy)) if j not in matched]
-    farthest = 0.0
-    if unmatched:
-        farthest = float(d[:, unmatched].min(axis=0).max()) if len(truth_xy) else np.inf
-    return Score(errors, len(unmatched), farthest)
+        matched = int(ok.sum())
+    return Score(errors, len(tracks_xy) - matched)

@@ -9,7 +9,6 @@ Exit status: 0 when stopped, 2 for a bad scenario, fault plan or arguments, 1 fo
 from __future__ import annotations
 
 import argparse
-import os
 import signal
 import sys
 import threading
@@ -17,13 +16,13 @@ from collections.abc import Sequence
 from importlib import resources
 from pathlib import Path
 
-from companion.cli import shipped_scenarios
-from companion.errors import CompanionError, ConfigError
+from companion.cli import run_command, shipped_scenarios
+from companion.errors import ConfigError
 from companion.sim.scenario import load_scenario
 from sitl.faults import parse_faults
 from sitl.runner import Sitl
 
-EXIT_OK, EXIT_ERROR, EXIT_USAGE = 0, 1, 2
+EXIT_OK = 0
 
 
 def sitl_scenarios() -> dict[str, Path]:
@@ -129,24 +128,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     stop = threading.Event()
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    try:
-        return run(args, stop)
-    except ConfigError as exc:
-        print(f"companion-sitl: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    except KeyboardInterrupt:
-        return EXIT_OK
-    except (CompanionError, OSError) as exc:
-        if os.environ.get("COMPANION_DEBUG"):
-            raise
-        print(f"companion-sitl: error: {exc}", file=sys.stderr)
-        return EXIT_ERROR
-    except Exception as exc:  # the last line of defence: no traceback at a user
-        if os.environ.get("COMPANION_DEBUG"):
-            raise
-        print(f"companion-sitl: internal error: {type(exc).__name__}: {exc} "
-              "(set COMPANION_DEBUG=1 for the traceback)", file=sys.stderr)
-        return EXIT_ERROR
+
+    def body() -> int:
+        try:
+            return run(args, stop)
+        except KeyboardInterrupt:  # Ctrl-C is how it is meant to stop
+            return EXIT_OK
+
+    return run_command("companion-sitl", body)
 
 
 if __name__ == "__main__":

@@ -12,8 +12,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import dataclasses
-import os
-import socket
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -24,8 +22,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.cli import run_command
 from companion.config import ServiceConfig, parse_config
-from companion.errors import CompanionError, ConfigError
+from companion.errors import ConfigError
 from companion.keys import load_toml
 from companion.report import Score, score
 from companion.service import RunResult, Service
@@ -34,20 +33,13 @@ from companion.vehicle.mavsdk_link import route_mavsdk_log
 from sitl.autopilot import Snapshot
 from sitl.cli import resolve_mission
 from sitl.faults import parse_faults
+from sitl.link import free_udp_port
 from sitl.runner import Sitl
 
 __all__ = ["DemoResult", "fly", "main", "service_config"]
 
 FloatArray = NDArray[np.float64]
 FENCE_MARGIN_M = 5.0
-EXIT_OK, EXIT_ERROR, EXIT_USAGE = 0, 1, 2
-
-
-def free_udp_port() -> int:
-    """A UDP port on loopback that nobody uses now."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _latlon(scenario: Scenario, xy_m: FloatArray) -> list[list[float]]:
@@ -155,7 +147,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of `companion-demo`."""
     args = build_parser().parse_args(argv)
-    try:
+
+    def body() -> int:
         if not args.speedup > 0:
             raise ConfigError("--speedup", f"must be > 0, got {args.speedup}")
         scenario = load_scenario(resolve_mission(args.scenario))
@@ -169,23 +162,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                                  faults=args.faults,
                                  announce=lambda text: print(f"  {text}", flush=True)))
         print(report(result))
-        return EXIT_OK if result.score.missed == 0 and result.score.false_tracks == 0 else 1
-    except ConfigError as exc:
-        print(f"companion-demo: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    except KeyboardInterrupt:
-        return EXIT_ERROR
-    except (CompanionError, OSError) as exc:
-        if os.environ.get("COMPANION_DEBUG"):
-            raise
-        print(f"companion-demo: error: {exc}", file=sys.stderr)
-        return EXIT_ERROR
-    except Exception as exc:  # the last line of defence: no traceback at a user
-        if os.environ.get("COMPANION_DEBUG"):
-            raise
-        print(f"companion-demo: internal error: {type(exc).__name__}: {exc} "
-              "(set COMPANION_DEBUG=1 for the traceback)", file=sys.stderr)
-        return EXIT_ERROR
+        return 0 if result.score.missed == 0 and result.score.false_tracks == 0 else 1
+
+    return run_command("companion-demo", body)
 
 
 if __name__ == "__main__":

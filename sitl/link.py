@@ -114,3 +114,10 @@ class UdpLink:
     def close(self) -> None:
         """Close the socket."""
         self._sock.close()
+
+
+def free_udp_port(host: str = "127.0.0.1") -> int:
+    """A UDP port on host that nobody uses now (for tests and the demo)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind((host, 0))
+        return int(sock.getsockname()[1])

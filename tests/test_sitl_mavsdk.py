@@ -5,7 +5,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
-import socket
 import time
 from collections.abc import AsyncIterator, Iterator
 from dataclasses import dataclass
@@ -20,7 +19,7 @@ from mavsdk.asyncio.plugins.telemetry import FlightMode, TelemetryAsync
 from companion.geo import LocalNed
 from sitl.autopilot import AutopilotConfig, MockAutopilot
 from sitl.clock import SimClock
-from sitl.link import UdpLink
+from sitl.link import UdpLink, free_udp_port
 from sitl.modes import Behaviour, Flavour
 
 SPEEDUP = 3.0
@@ -28,15 +27,9 @@ ALT_M = 8.0
 GEO = LocalNed(37.2, -80.4, 600.0)
 
 
-def _free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.fixture(params=[Flavour.PX4, Flavour.ARDUPILOT], ids=lambda f: f.value)
 def sitl(request: pytest.FixtureRequest) -> Iterator[tuple[MockAutopilot, int]]:
-    port = _free_udp_port()
+    port = free_udp_port()
     flavour: Flavour = request.param
     link = UdpLink([("127.0.0.1", port)], np.random.default_rng(0))
     autopilot = MockAutopilot(AutopilotConfig(flavour=flavour, armable_after_s=1.0), link,

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import socket
 from collections.abc import Iterator
 
 import numpy as np
@@ -19,22 +18,16 @@ from companion.vehicle.mavsdk_link import (
 )
 from sitl.autopilot import AutopilotConfig, MockAutopilot
 from sitl.clock import SimClock
-from sitl.link import UdpLink
+from sitl.link import UdpLink, free_udp_port
 from sitl.modes import Behaviour, Flavour
 
 SPEEDUP = 3.0
 GEO = LocalNed(47.397742, 8.545594, 488.0)
 
 
-def _free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.fixture(params=[Flavour.PX4, Flavour.ARDUPILOT], ids=lambda f: f.value)
 def autopilot(request: pytest.FixtureRequest) -> Iterator[tuple[MockAutopilot, int]]:
-    port = _free_udp_port()
+    port = free_udp_port()
     link = UdpLink([("127.0.0.1", port)], np.random.default_rng(0))
     config = AutopilotConfig(flavour=request.param, armable_after_s=1.0,
                              ekf_origin_offset_ned=(3.0, -2.0))
@@ -153,7 +146,7 @@ def test_a_refused_command_names_itself(autopilot: tuple[MockAutopilot, int]) ->
 
 def test_no_autopilot_is_a_clear_error() -> None:
     async def session() -> None:
-        async with MavsdkLink.connect(f"udpin://127.0.0.1:{_free_udp_port()}", timeout_s=1.0):
+        async with MavsdkLink.connect(f"udpin://127.0.0.1:{free_udp_port()}", timeout_s=1.0):
             pass
 
     with pytest.raises(VehicleError, match=r"no autopilot heartbeat on udpin://127\.0\.0\.1:"):

@@ -42,13 +42,12 @@ class VehicleView:
         self._locals: deque[tuple[float, float, float, float]] = deque(maxlen=50)
         self._origins: deque[tuple[float, float, float]] = deque(maxlen=ORIGIN_SAMPLES)
         self._offsets: deque[float] = deque(maxlen=CLOCK_SAMPLES)
-        self.reboots = 0
 
     # -- the sink ----------------------------------------------------------------------------
 
     def _stamp(self, t_s: float) -> None:
         if self.latest_boot_s is not None and t_s < self.latest_boot_s - 1.0:
-            self.reboots += 1  # the local origin may move too: estimate it again
+            # a reboot: the local origin may move too, estimate it again
             self._origins.clear()
             self._offsets.clear()
             self._locals.clear()
