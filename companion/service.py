@@ -171,29 +171,39 @@ class Service:
         self._events = _JsonLines(out / "events.jsonl")
         steps = _JsonLines(out / "steps.jsonl")
         self._event("start", out_dir=str(out))
-        c = self.config.camera
+        try:
+            await self._fly(stop, steps)
+            tracks = self._write_reports(out)
+            self._event("end", state=self.mission.state.value, confirmed=len(tracks),
+                        **self.counters)
+        except Exception as exc:
+            self._event("error", error=f"{type(exc).__name__}: {exc}")
+            raise
+        finally:
+            steps.close()
+            self._events.close()
+        return RunResult(out, tracks, self.mission.state.value, dict(self.counters))
+
+    async def _fly(self, stop: asyncio.Event, steps: _JsonLines) -> None:
+        c, v = self.config.camera, self.config.vehicle
         grabber = LatestFrameGrabber(open_source(c.source, c.kind), self.clock).start()
         try:
-            v = self.config.vehicle
             async with MavsdkLink.connect(v.connection, v.connect_timeout_s,
                                           v.telemetry_rate_hz) as link:
                 self._event("connected", url=v.connection)
-                async with asyncio.TaskGroup() as group:
-                    telemetry = group.create_task(link.run_telemetry(self.view))
-                    estimator = group.create_task(self._estimate(grabber, steps))
-                    await self._control(link, stop)
-                    telemetry.cancel()
-                    estimator.cancel()
+                try:
+                    async with asyncio.TaskGroup() as group:
+                        telemetry = group.create_task(link.run_telemetry(self.view))
+                        estimator = group.create_task(self._estimate(grabber, steps))
+                        await self._control(link, stop)
+                        telemetry.cancel()
+                        estimator.cancel()
+                except ExceptionGroup as failed:  # a task died: report its own error
+                    raise failed.exceptions[0] from failed
         finally:
             grabber.stop()
-            steps.close()
             self.counters["frames_dropped"] = grabber.dropped
             self.counters["frame_errors"] = grabber.errors
-        tracks = self._write_reports(out)
-        self._event("end", state=self.mission.state.value, confirmed=len(tracks),
-                    **self.counters)
-        self._events.close()
-        return RunResult(out, tracks, self.mission.state.value, dict(self.counters))
 
     def _event(self, event: str, **fields: Any) -> None:
         if self._events is not None:
