@@ -12,6 +12,7 @@ import difflib
 import math
 import numbers
 import tomllib
+from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -74,14 +75,14 @@ def array_items(key: str, raw: object, shape_doc: str) -> Sequence[object]:
     return raw
 
 
-class Kind(Generic[T]):
+class Kind(ABC, Generic[T]):
     """How one key's value is parsed and checked (`parse`), described (`doc`), written (`dump`)."""
 
     doc: str = ""
 
+    @abstractmethod
     def parse(self, key: str, raw: object) -> T:
         """The checked value, or ConfigError(key, ...)."""
-        raise NotImplementedError
 
     def dump(self, value: T) -> object:
         """The value as plain TOML data (what `parse` accepts back)."""

@@ -39,24 +39,23 @@ class Client:
         out: list[mavlink.MAVLink_message] = []
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            try:
-                data, addr = self.sock.recvfrom(65535)
-            except TimeoutError:
-                continue
-            self.autopilot = (addr[0], addr[1])
-            out.extend(self.mav.parse_buffer(data) or [])
+            out.extend(self._receive())
         return out
+
+    def _receive(self) -> list[mavlink.MAVLink_message]:
+        """The messages of one datagram (none when the socket times out)."""
+        try:
+            data, addr = self.sock.recvfrom(65535)
+        except TimeoutError:
+            return []
+        self.autopilot = (addr[0], addr[1])
+        return self.mav.parse_buffer(data) or []
 
     def wait_for(self, predicate: Predicate, timeout_s: float = 5.0) -> mavlink.MAVLink_message:
         """The first message received that satisfies predicate, or AssertionError on timeout."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            try:
-                data, addr = self.sock.recvfrom(65535)
-            except TimeoutError:
-                continue
-            self.autopilot = (addr[0], addr[1])
-            for msg in self.mav.parse_buffer(data) or []:
+            for msg in self._receive():
                 if predicate(msg):
                     return msg
         raise AssertionError("no such message within the timeout")

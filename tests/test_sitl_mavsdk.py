@@ -79,6 +79,13 @@ async def _start_offboard(drone: Drone, autopilot: MockAutopilot) -> None:
     await drone.off.start()
 
 
+async def _hover_in_offboard(drone: Drone, autopilot: MockAutopilot) -> None:
+    """Take off, then hold the take-off point at ALT_M in OFFBOARD."""
+    await _take_off(drone)
+    await drone.off.set_position_ned(PositionNedYaw(0.0, 0.0, -ALT_M, 0.0))
+    await _start_offboard(drone, autopilot)
+
+
 async def _take_off(drone: Drone) -> None:
     await _until(drone.tel.subscribe_health(),
                  lambda h: h.is_global_position_ok and h.is_home_position_ok and h.is_armable, 20)
@@ -104,9 +111,7 @@ def test_mission_flight(sitl: tuple[MockAutopilot, int]) -> None:
 
     async def flight() -> None:
         async with _connect(port, autopilot.config.flavour) as drone:
-            await _take_off(drone)
-            await drone.off.set_position_ned(PositionNedYaw(0.0, 0.0, -ALT_M, 0.0))
-            await _start_offboard(drone, autopilot)
+            await _hover_in_offboard(drone, autopilot)
             await _until(drone.tel.subscribe_flight_mode(), lambda m: m == FlightMode.OFFBOARD, 5)
             for north in (10.0, -10.0):  # two setpoints 20 m apart
                 await _fly_to(drone, north, 0.0)
@@ -124,9 +129,7 @@ def test_pilot_override_and_link_cut(sitl: tuple[MockAutopilot, int]) -> None:
 
     async def flight() -> None:
         async with _connect(port, autopilot.config.flavour) as drone:
-            await _take_off(drone)
-            await drone.off.set_position_ned(PositionNedYaw(0.0, 0.0, -ALT_M, 0.0))
-            await _start_offboard(drone, autopilot)
+            await _hover_in_offboard(drone, autopilot)
             await _fly_to(drone, 5.0, 0.0)
             # The pilot takes over: the mode changes under MAVSDK, which keeps sending setpoints
             # for a while; the autopilot ignores them and never goes back to OFFBOARD by itself.
