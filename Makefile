@@ -24,6 +24,7 @@ study: $(STAMP)
 	$(BIN)/companion study --seeds $(SEEDS) --out $(OUT)
 
 test: $(STAMP)
+	@command -v systemd-analyze >/dev/null || { apt-get update -qq && apt-get install -y -qq systemd >/dev/null; }
 	$(BIN)/ruff check .
 	$(BIN)/mypy
 	$(BIN)/pytest -q

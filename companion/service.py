@@ -20,6 +20,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -35,6 +36,7 @@ from companion.camera.source import Frame, LatestFrameGrabber, open_source
 from companion.config import CameraConfig, ServiceConfig
 from companion.errors import CompanionError
 from companion.geo import LocalNed
+from companion.notify import Notifier
 from companion.pipeline import Pipeline, StepRecord
 from companion.plan.gate import GateLimits, Setpoint, gate
 from companion.plan.planners import (
@@ -123,8 +125,10 @@ class Service:
 
     def __init__(self, config: ServiceConfig, *, camera: CameraModel | None = None,
                  clock: Callable[[], float] = time.monotonic, time_scale: float = 1.0,
-                 announce: Callable[[str], None] = lambda _: None) -> None:
+                 announce: Callable[[str], None] = lambda _: None,
+                 notifier: Notifier | None = None) -> None:
         self.config = config
+        self.notifier = notifier or Notifier.from_environment()
         self.time_scale = time_scale  # clock seconds per wall second (a SITL's speed-up)
         self.camera = camera or camera_model(config.camera)
         self.clock = clock
@@ -143,6 +147,9 @@ class Service:
         self._events: _JsonLines | None = None
         self._announced: set[int] = set()
         self._streaming_since_s: float | None = None
+        self._last_step_wall_s = -math.inf  # when the pipeline last finished a step
+        self._last_watchdog_wall_s = -math.inf
+        self._ready_sent = False
 
     # -- configuration -----------------------------------------------------------------------
 
@@ -180,6 +187,8 @@ class Service:
             self._event("error", error=f"{type(exc).__name__}: {exc}")
             raise
         finally:
+            self.notifier.stopping()
+            self.notifier.close()
             steps.close()
             self._events.close()
         return RunResult(out, tracks, self.mission.state.value, dict(self.counters))
@@ -223,6 +232,7 @@ class Service:
             record = await self._estimator_step(frame, loop)
             if record is None:
                 continue
+            self._last_step_wall_s = time.monotonic()
             self.counters["steps"] += 1
             self.counters["blind_steps"] += record.blind is not None
             steps.write(record.to_json(self.pipeline.frame))
@@ -284,7 +294,10 @@ class Service:
         period_s = 1.0 / self.config.mission.setpoint_rate_hz
         final = (ms.State.DONE, ms.State.FAILSAFE)
         while not stop.is_set():
-            self.mission, commands = ms.advance(self.mission, self._inputs(), self.clock())
+            inputs = self._inputs()
+            before = self.mission.state
+            self.mission, commands = ms.advance(self.mission, inputs, self.clock())
+            self._tell_systemd(inputs, before)
             for command in commands:
                 await self._execute(link, command)
             if self._stream is not None:
@@ -295,6 +308,25 @@ class Service:
                 return  # landed and disarmed after the end
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), period_s / self.time_scale)
+
+    def _tell_systemd(self, inputs: ms.MissionInputs, before: ms.State) -> None:
+        """READY once connected, STATUS on every state change, WATCHDOG while the pipeline runs."""
+        state = self.mission.state
+        if inputs.connected and not self._ready_sent:
+            self._ready_sent = True
+            self.notifier.ready(f"connected to {self.config.vehicle.connection}")
+        if state is not before:
+            confirmed = inputs.confirmed_targets
+            self.notifier.status(f"{state.value}: {confirmed} targets confirmed")
+        interval_s = self.notifier.watchdog_interval_s
+        if interval_s is None:
+            return
+        now_s = time.monotonic()
+        wall_period_s = 1.0 / self.config.estimator.rate_hz / self.time_scale
+        alive = now_s - self._last_step_wall_s < max(5.0 * wall_period_s, 2.0)
+        if alive and now_s - self._last_watchdog_wall_s >= interval_s:
+            self.notifier.watchdog()
+            self._last_watchdog_wall_s = now_s
 
     async def _execute(self, link: MavsdkLink, command: ms.Command) -> None:
         kind = command.kind
