@@ -47,6 +47,7 @@ from companion.plan.planners import (
     lawnmower_path,
     move_towards,
 )
+from companion.record.tlog import TlogWriter
 from companion.report import TrackRecord, confirmed_tracks, write_csv, write_geojson
 from companion.sim.plots import plot_flight
 from companion.vehicle.mavsdk_link import FlightMode, MavsdkLink, VehicleError
@@ -177,9 +178,10 @@ class Service:
         out = _run_dir(Path(self.config.output.dir), datetime.now(UTC))
         self._events = _JsonLines(out / "events.jsonl")
         steps = _JsonLines(out / "steps.jsonl")
+        tlog = TlogWriter(out / "flight.tlog")
         self._event("start", out_dir=str(out))
         try:
-            await self._fly(stop, steps)
+            await self._fly(stop, steps, tlog)
             tracks = self._write_reports(out)
             self._event("end", state=self.mission.state.value, confirmed=len(tracks),
                         **self.counters)
@@ -189,24 +191,31 @@ class Service:
         finally:
             self.notifier.stopping()
             self.notifier.close()
+            self.counters["tlog_messages"] = tlog.written
+            tlog.close()
             steps.close()
             self._events.close()
         return RunResult(out, tracks, self.mission.state.value, dict(self.counters))
 
-    async def _fly(self, stop: asyncio.Event, steps: _JsonLines) -> None:
+    async def _fly(self, stop: asyncio.Event, steps: _JsonLines, tlog: TlogWriter) -> None:
         c, v = self.config.camera, self.config.vehicle
         grabber = LatestFrameGrabber(open_source(c.source, c.kind), self.clock).start()
+
+        def record(system_id: int, component_id: int, name: str, fields: dict[str, Any]) -> None:
+            tlog.write(time.time(), system_id, component_id, name, fields)
+
         try:
             async with MavsdkLink.connect(v.connection, v.connect_timeout_s,
                                           v.telemetry_rate_hz) as link:
                 self._event("connected", url=v.connection)
                 try:
                     async with asyncio.TaskGroup() as group:
-                        telemetry = group.create_task(link.run_telemetry(self.view))
-                        estimator = group.create_task(self._estimate(grabber, steps))
+                        tasks = [group.create_task(link.run_telemetry(self.view)),
+                                 group.create_task(link.run_recording(record)),
+                                 group.create_task(self._estimate(grabber, steps))]
                         await self._control(link, stop)
-                        telemetry.cancel()
-                        estimator.cancel()
+                        for task in tasks:
+                            task.cancel()
                 except ExceptionGroup as failed:  # a task died: report its own error
                     raise failed.exceptions[0] from failed
         finally:

@@ -10,6 +10,7 @@ from typing import Any, Literal
 
 import numpy as np
 import pytest
+from pymavlink import mavutil
 
 from companion.sim.scenario import Scenario, load_scenario
 from sitl.cli import sitl_scenarios
@@ -66,6 +67,15 @@ def test_field_experiment_mission(flavour: Literal["px4", "ardupilot"], tmp_path
     assert sum(s["blind"] is None for s in steps) > 100
     geojson = json.loads((result.run.out_dir / "tracks.geojson").read_text())
     assert len(geojson["features"]) == len(result.run.tracks) == 5
+
+    # The MAVLink traffic the service saw, as a .tlog that pymavlink reads back.
+    log = mavutil.mavlink_connection(str(result.run.out_dir / "flight.tlog"))
+    kinds: dict[str, int] = {}
+    while (msg := log.recv_match()) is not None:
+        kinds[msg.get_type()] = kinds.get(msg.get_type(), 0) + 1
+    log.close()
+    assert kinds.get("BAD_DATA", 0) == 0
+    assert kinds["HEARTBEAT"] > 20 and kinds["GLOBAL_POSITION_INT"] > 500
 
 
 def test_pilot_takeover_stops_commanding_and_estimating_goes_on(tmp_path: Path) -> None:

@@ -147,6 +147,14 @@ class MavsdkLink:
                 f["time_boot_ms"] / 1e3, (f["q1"], f["q2"], f["q3"], f["q4"]))))
             group.create_task(self._status_updates(sink))
 
+    async def run_recording(self, record: Callable[[int, int, str, dict[str, Any]], None]
+                            ) -> None:
+        """Every message received, as (system, component, name, fields), until cancelled."""
+        async with contextlib.aclosing(self.direct.subscribe_message("")) as messages:
+            async for message in messages:
+                record(message.system_id, message.component_id, message.message_name,
+                       _fields(message))
+
     async def _messages(self, name: str, deliver: Callable[[dict[str, Any]], None]) -> None:
         async with contextlib.aclosing(self.direct.subscribe_message(name)) as messages:
             async for message in messages:
