@@ -120,6 +120,24 @@ def _run(args: argparse.Namespace) -> int:
     return asyncio.run(fly())
 
 
+def _replay(args: argparse.Namespace) -> int:
+    from companion.config import load_config
+    from companion.replay import replay_run
+    from companion.sim.study import progress_bar
+
+    config = load_config(args.config) if args.config else None
+    out = args.out or args.run_dir / "replay"
+    with progress_bar(f"replay {args.run_dir.name}", unit="step") as bar:
+        result = replay_run(args.run_dir, out, config, progress=bar.update_to)
+    for warning in result.warnings:
+        print(f"companion: warning: {warning}", file=sys.stderr)
+    factor = result.flight_s / result.wall_s if result.wall_s > 0 else float("inf")
+    print(f"replayed {result.steps} steps ({result.flight_s:.0f} s of flight) in "
+          f"{result.wall_s:.1f} s, {factor:.0f}x real time: {len(result.tracks)} confirmed "
+          f"tracks -> {result.out_dir}")
+    return EXIT_OK
+
+
 def _positive_int(text: str) -> int:
     value = int(text)
     if value < 1:
@@ -163,6 +181,15 @@ def build_parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="the onboard service: search, track and fly (Ctrl-C stops)")
     run.add_argument("--config", type=Path, required=True, help="the service's TOML configuration")
     run.set_defaults(run=_run)
+
+    replay = sub.add_parser("replay", help="re-run a run folder's detections through the pipeline")
+    replay.add_argument("run_dir", metavar="RUN", type=Path,
+                        help="a run folder written by `companion run`")
+    replay.add_argument("--config", type=Path, default=None,
+                        help="another configuration to tune with (default: the run's own)")
+    replay.add_argument("--out", type=Path, default=None,
+                        help="output folder (default: RUN/replay)")
+    replay.set_defaults(run=_replay)
 
     check = sub.add_parser("check-config", help="validate a service configuration file and exit")
     check.add_argument("config", type=Path, help="the service's TOML configuration")

@@ -10,9 +10,10 @@ bad key and the reason. `companion check-config FILE` and `companion run` use it
 from __future__ import annotations
 
 import argparse
+import copy
 import sys
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -172,6 +173,7 @@ class ServiceConfig:
     safety: SafetyConfig
     mission: MissionConfig
     output: OutputConfig
+    data: Mapping[str, Any] = field(default_factory=dict, compare=False, repr=False)  # as read
 
 
 SECTIONS: dict[str, tuple[Key, ...]] = {
@@ -353,6 +355,7 @@ def parse_config(data: Mapping[str, Any], base: Path | None = None) -> ServiceCo
         safety=SafetyConfig(**safety),
         mission=MissionConfig(**mission),
         output=OutputConfig(**output),
+        data=copy.deepcopy(dict(data)),
     )
 
 

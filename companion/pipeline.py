@@ -173,6 +173,11 @@ class Pipeline:
         det = self.config.detector
         _, pixels = detect_centres(self.detector, image, det.min_decision_margin,
                                    det.allowed_ids)
+        return self.step_detections(pixels, pose)
+
+    def step_detections(self, pixels: FloatArray, pose: GeoPose) -> StepRecord:
+        """One step on a frame's detected tag centres (OpenCV pixels): what replay re-runs."""
+        det = self.config.detector
         est = self.config.estimator
         centre = np.array([[self.camera.cx_px, self.camera.cy_px]])
         ground = project_detections(self.camera, pose, np.vstack([centre, pixels]),
@@ -195,14 +200,22 @@ class Pipeline:
             footprint = footprint_utm(self.camera, pose, self.frame.utm, est.max_range_m)
             outline = _shrunk(self.frame.from_utm(footprint.vertices_xy), est.footprint_margin_m)
             region = ConvexPolygon(outline)
-        return self._advance(pose.t_s, Scan(0.0, region, z, r_cov, vehicle), None,
-                             len(pixels), outline)
+        record = self._advance(pose.t_s, Scan(0.0, region, z, r_cov, vehicle), None,
+                               len(pixels), outline)
+        record.extra["input"] = {
+            "boot_t_s": pose.t_s,
+            "pose": [pose.lat_deg, pose.lon_deg, pose.alt_amsl_m, pose.height_agl_m,
+                     *pose.q_wxyz],
+            "pixels": np.asarray(pixels, dtype=np.float64).tolist()}
+        return record
 
     def blind(self, boot_t_s: float, reason: str) -> StepRecord:
         """A step without a usable frame: predict only, nobody is erased for being unseen."""
         r_cov = np.eye(2) * self.config.filter.gp_sigma_n ** 2
-        return self._advance(boot_t_s, Scan(0.0, None, np.zeros((0, 2)), r_cov, np.zeros(2)),
-                             reason, 0, None)
+        record = self._advance(boot_t_s, Scan(0.0, None, np.zeros((0, 2)), r_cov, np.zeros(2)),
+                               reason, 0, None)
+        record.extra["input"] = {"boot_t_s": boot_t_s}
+        return record
 
     def _advance(self, boot_t_s: float, scan: Scan, blind: str | None, detections: int,
                  outline: FloatArray | None) -> StepRecord:

@@ -19,12 +19,14 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import json
 import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
+from importlib.metadata import version
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -179,6 +181,7 @@ class Service:
         self._events = _JsonLines(out / "events.jsonl")
         steps = _JsonLines(out / "steps.jsonl")
         tlog = TlogWriter(out / "flight.tlog")
+        self._snapshot(out)
         self._event("start", out_dir=str(out))
         try:
             await self._fly(stop, steps, tlog)
@@ -222,6 +225,13 @@ class Service:
             grabber.stop()
             self.counters["frames_dropped"] = grabber.dropped
             self.counters["frame_errors"] = grabber.errors
+
+    def _snapshot(self, out: Path) -> None:
+        """What replay needs besides the steps: the configuration and the camera model."""
+        (out / "config.json").write_text(json.dumps(self.config.data, indent=1))
+        camera = {f.name: getattr(self.camera, f.name) for f in dataclasses.fields(self.camera)}
+        (out / "camera.json").write_text(json.dumps(camera, indent=1))
+        (out / "version.txt").write_text(f"companion {version('companion')}\n")
 
     def _event(self, event: str, **fields: Any) -> None:
         if self._events is not None:

@@ -94,7 +94,9 @@ class GeoPose:
         norm = math.sqrt(sum(c * c for c in q))
         if abs(norm - 1.0) > 1e-3:
             raise InputError(f"pose.q_wxyz must be a unit quaternion, norm is {norm:.6f}")
-        object.__setattr__(self, "q_wxyz", tuple(c / norm for c in q))
+        if abs(norm - 1.0) > 1e-15:  # a unit quaternion stays bit for bit (replay is exact)
+            q = tuple(c / norm for c in q)
+        object.__setattr__(self, "q_wxyz", q)
 
     def local_ned(self) -> LocalNed:
         """The local NED frame whose origin is the ground point below the vehicle."""
