@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 from collections.abc import Callable, Sequence
@@ -122,19 +123,27 @@ def _run(args: argparse.Namespace) -> int:
 
 def _replay(args: argparse.Namespace) -> int:
     from companion.config import load_config
-    from companion.replay import replay_run
+    from companion.replay import load_truth, replay_run
     from companion.sim.study import progress_bar
 
     config = load_config(args.config) if args.config else None
+    truth = load_truth(args.truth) if args.truth else None
     out = args.out or args.run_dir / "replay"
     with progress_bar(f"replay {args.run_dir.name}", unit="step") as bar:
-        result = replay_run(args.run_dir, out, config, progress=bar.update_to)
+        result = replay_run(args.run_dir, out, config, progress=bar.update_to,
+                            truth_latlon=truth)
     for warning in result.warnings:
         print(f"companion: warning: {warning}", file=sys.stderr)
     factor = result.flight_s / result.wall_s if result.wall_s > 0 else float("inf")
     print(f"replayed {result.steps} steps ({result.flight_s:.0f} s of flight) in "
           f"{result.wall_s:.1f} s, {factor:.0f}x real time: {len(result.tracks)} confirmed "
           f"tracks -> {result.out_dir}")
+    if result.score is not None and truth is not None:
+        print(f"{'target':>6} {'lat':>11} {'lon':>11} {'error m':>8}")
+        for i, ((lat, lon), err) in enumerate(zip(truth, result.score.errors_m, strict=True)):
+            shown = f"{err:8.2f}" if math.isfinite(err) else "  missed"
+            print(f"{i:>6} {lat:11.6f} {lon:11.6f} {shown}")
+        print(f"{result.score.missed} missed, {result.score.false_tracks} false tracks")
     return EXIT_OK
 
 
@@ -189,6 +198,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="another configuration to tune with (default: the run's own)")
     replay.add_argument("--out", type=Path, default=None,
                         help="output folder (default: RUN/replay)")
+    replay.add_argument("--truth", type=Path, default=None,
+                        help="true target positions (CSV with lat, lon columns, or GeoJSON "
+                             "points): prints each target's error")
     replay.set_defaults(run=_replay)
 
     check = sub.add_parser("check-config", help="validate a service configuration file and exit")

@@ -11,6 +11,7 @@ are the live run's.
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import json
 import time
@@ -20,16 +21,26 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from companion.config import ServiceConfig, parse_config
 from companion.errors import InputError
 from companion.pipeline import Pipeline
-from companion.report import TrackRecord, confirmed_tracks, write_csv, write_geojson
+from companion.report import (
+    Score,
+    TrackRecord,
+    confirmed_tracks,
+    score,
+    write_csv,
+    write_geojson,
+)
 from companion.sim.plots import plot_flight
 from companion.vision.camera import CameraModel
 from companion.vision.projection import GeoPose
 
-__all__ = ["ReplayResult", "replay_run"]
+__all__ = ["ReplayResult", "load_truth", "replay_run"]
+
+FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)
@@ -42,6 +53,26 @@ class ReplayResult:
     warnings: list[str]
     wall_s: float
     flight_s: float  # the autopilot time the steps span
+    score: Score | None = None  # against the truth file, when one was given
+
+
+def load_truth(path: Path) -> FloatArray:
+    """True target positions (n, 2) [lat, lon] from a CSV (columns lat, lon) or GeoJSON points."""
+    try:
+        if path.suffix.lower() in (".geojson", ".json"):
+            features = json.loads(path.read_text())["features"]
+            points = [f["geometry"]["coordinates"][:2][::-1] for f in features
+                      if f["geometry"]["type"] == "Point"]
+        else:
+            with path.open(newline="") as fh:
+                points = [[float(row["lat"]), float(row["lon"])] for row in csv.DictReader(fh)]
+    except (OSError, KeyError, TypeError, ValueError) as exc:
+        raise InputError(f"{path}: not a truth file (CSV with lat, lon columns, or GeoJSON "
+                         f"points): {exc}") from exc
+    truth = np.array(points, dtype=np.float64).reshape(-1, 2)
+    if not np.all(np.isfinite(truth)) or np.any(np.abs(truth[:, 0]) > 90.0):
+        raise InputError(f"{path}: positions must be finite [lat, lon] in degrees")
+    return truth
 
 
 def _records(path: Path, warnings: list[str]) -> Iterator[dict[str, Any]]:
@@ -68,7 +99,8 @@ def _camera(path: Path) -> CameraModel:
 
 
 def replay_run(run_dir: Path, out_dir: Path, config: ServiceConfig | None = None,
-               progress: Callable[[int, int], None] | None = None) -> ReplayResult:
+               progress: Callable[[int, int], None] | None = None,
+               truth_latlon: FloatArray | None = None) -> ReplayResult:
     """Re-run a run folder's steps; config replaces the run's own configuration."""
     started = time.perf_counter()
     if not (run_dir / "steps.jsonl").is_file():
@@ -102,8 +134,19 @@ def replay_run(run_dir: Path, out_dir: Path, config: ServiceConfig | None = None
         records = [json.loads(line) for line in (out_dir / "steps.jsonl").read_text().splitlines()]
         plot_flight(records, np.array([[t.easting_m, t.northing_m] for t in tracks]), out_dir)
     span_s = inputs[-1][0]["boot_t_s"] - inputs[0][0]["boot_t_s"] if len(inputs) > 1 else 0.0
-    summary = {"steps": len(inputs), "confirmed": len(tracks), "warnings": warnings,
-               "tracks": [dataclasses.asdict(t) for t in tracks]}
+    summary: dict[str, Any] = {"steps": len(inputs), "confirmed": len(tracks),
+                               "warnings": warnings,
+                               "tracks": [dataclasses.asdict(t) for t in tracks]}
+    result_score = None
+    if truth_latlon is not None:
+        e, n = frame.utm.geodetic_to_utm(truth_latlon[:, 0], truth_latlon[:, 1])
+        truth_en = np.column_stack([e, n])
+        tracks_en = np.array([[t.easting_m, t.northing_m] for t in tracks]).reshape(-1, 2)
+        result_score = score(tracks_en, truth_en)
+        summary["truth"] = {"errors_m": [None if not np.isfinite(x) else round(float(x), 4)
+                                         for x in result_score.errors_m],
+                            "missed": result_score.missed,
+                            "false_tracks": result_score.false_tracks}
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
     return ReplayResult(out_dir, len(inputs), tracks, warnings,
-                        time.perf_counter() - started, float(span_s))
+                        time.perf_counter() - started, float(span_s), result_score)

@@ -14,7 +14,7 @@ import pytest
 
 from companion.config import parse_config
 from companion.errors import InputError
-from companion.replay import replay_run
+from companion.replay import load_truth, replay_run
 from companion.sim.scenario import load_scenario
 from sitl.cli import sitl_scenarios
 from sitl.demo import fly
@@ -77,3 +77,40 @@ def test_not_a_run_folder(tmp_path: Path) -> None:
     assert done.returncode == 1
     assert done.stderr.strip().endswith("not a run folder of the service (no steps.jsonl)")
     assert "Traceback" not in done.stderr
+
+
+def _truth_latlon() -> list[tuple[float, float]]:
+    scenario = load_scenario(sitl_scenarios()["field-5-tags"])
+    geo = scenario.geo.local_ned()
+    out = []
+    for x, y in scenario.targets.positions_xy:
+        lat, lon, _ = geo.ned_to_geodetic(y, x, 0.0)
+        out.append((float(lat), float(lon)))
+    return out
+
+
+def test_a_truth_file_scores_the_tracks(run_dir: Path, tmp_path: Path) -> None:
+    truth = _truth_latlon()
+    as_csv = tmp_path / "truth.csv"
+    as_csv.write_text("lat,lon\n" + "".join(f"{a!r},{b!r}\n" for a, b in truth))
+    as_geojson = tmp_path / "truth.geojson"
+    as_geojson.write_text(json.dumps({"type": "FeatureCollection", "features": [
+        {"type": "Feature", "geometry": {"type": "Point", "coordinates": [b, a]},
+         "properties": {}} for a, b in truth]}))
+    for path in (as_csv, as_geojson):
+        result = replay_run(run_dir, tmp_path / path.stem, truth_latlon=load_truth(path))
+        assert result.score is not None
+        found = result.score.errors_m[result.score.errors_m < float("inf")]
+        assert len(found) == len(result.tracks) and (found < 0.5).all()
+        assert result.score.missed == 5 - len(result.tracks)
+        assert result.score.false_tracks == 0
+    done = subprocess.run([sys.executable, "-m", "companion", "replay", str(run_dir), "--out",
+                           str(tmp_path / "cli"), "--truth", str(as_csv)],
+                          capture_output=True, text=True, timeout=120, check=False)
+    assert done.returncode == 0, done.stderr
+    assert "target         lat         lon  error m" in done.stdout
+    assert f"{5 - len(result.tracks)} missed, 0 false tracks" in done.stdout
+    bad = tmp_path / "bad.csv"
+    bad.write_text("x,y\n1,2\n")
+    with pytest.raises(InputError, match="not a truth file"):
+        load_truth(bad)
