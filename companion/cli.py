@@ -21,9 +21,9 @@ from companion.errors import CompanionError, ConfigError
 EXIT_OK, EXIT_ERROR, EXIT_USAGE = 0, 1, 2
 
 
-def shipped_scenarios() -> dict[str, Path]:
-    """The scenario files that ship with the package, by name."""
-    folder = Path(str(resources.files("companion") / "scenarios"))
+def shipped_scenarios(package: str = "companion") -> dict[str, Path]:
+    """The scenario files that ship with a package (companion's or sitl's), by name."""
+    folder = Path(str(resources.files(package) / "scenarios"))
     return {p.stem: p for p in sorted(folder.glob("*.toml"))}
 
 

@@ -9,6 +9,7 @@ abstract namespace.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import socket
 from collections.abc import Mapping
@@ -25,7 +26,6 @@ class Notifier:
         self._sock: socket.socket | None = None
         if address:
             self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        self.sent = 0
 
     @staticmethod
     def from_environment(environ: Mapping[str, str] = os.environ) -> Notifier:
@@ -40,11 +40,8 @@ class Notifier:
         if self._sock is None or self.address is None:
             return
         target = "\0" + self.address[1:] if self.address.startswith("@") else self.address
-        try:
+        with contextlib.suppress(OSError):  # systemd gone or the socket full: carry on
             self._sock.sendto(message.encode(), target)
-            self.sent += 1
-        except OSError:
-            pass  # systemd went away or the socket is full: the service carries on
 
     def ready(self, status: str) -> None:
         """READY=1: the service is connected and working."""

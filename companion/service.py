@@ -428,8 +428,7 @@ class Service:
 
     async def _send_setpoint(self, link: MavsdkLink, dt_s: float) -> None:
         view, origin = self.view, self.view.local_origin()
-        now_s = view.boot_time_now()
-        sample = None if now_s is None else view.poses.at(min(now_s, view.latest_boot_s or now_s))
+        sample = None if view.latest_boot_s is None else view.poses.at(view.latest_boot_s)
         if origin is None or sample is None or view.local_ned_m is None or view.home_amsl_m is None:
             return
         if self._limits is None:

@@ -13,7 +13,6 @@ import signal
 import sys
 import threading
 from collections.abc import Sequence
-from importlib import resources
 from pathlib import Path
 
 from companion.cli import run_command, shipped_scenarios
@@ -27,8 +26,7 @@ EXIT_OK = 0
 
 def sitl_scenarios() -> dict[str, Path]:
     """The SITL missions that ship with the package, by name."""
-    folder = Path(str(resources.files("sitl") / "scenarios"))
-    return {p.stem: p for p in sorted(folder.glob("*.toml"))}
+    return shipped_scenarios("sitl")
 
 
 def resolve_mission(arg: str) -> Path:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import json
 import math
 from collections.abc import AsyncIterator, Awaitable, Callable
@@ -164,8 +165,7 @@ class MavsdkLink:
 
     async def _status_updates(self, sink: TelemetrySink) -> None:
         def update(**changes: Any) -> None:
-            fields = {name: getattr(self._status, name) for name in Status.__slots__}
-            self._status = Status(**{**fields, **changes})
+            self._status = dataclasses.replace(self._status, **changes)
             sink.on_status(self._status)
 
         async def follow(stream: AsyncIterator[Any], apply: Callable[[Any], None]) -> None:
