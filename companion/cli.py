@@ -123,15 +123,30 @@ def _run(args: argparse.Namespace) -> int:
 
 def _replay(args: argparse.Namespace) -> int:
     from companion.config import load_config
-    from companion.replay import load_truth, replay_run
+    from companion.replay import FrameTimes, load_truth, replay_log, replay_run
     from companion.sim.study import progress_bar
 
     config = load_config(args.config) if args.config else None
     truth = load_truth(args.truth) if args.truth else None
-    out = args.out or args.run_dir / "replay"
-    with progress_bar(f"replay {args.run_dir.name}", unit="step") as bar:
-        result = replay_run(args.run_dir, out, config, progress=bar.update_to,
-                            truth_latlon=truth)
+    source: Path = args.run_or_log
+    times = FrameTimes(args.frame_times, args.frame_offset_s, args.frame_rate_hz)
+    with progress_bar(f"replay {source.name}", unit="step") as bar:
+        if source.is_dir():
+            if args.frames or times != FrameTimes():
+                raise ConfigError("--frames", "a run folder replays its own frames; "
+                                  "--frames and the frame times are for flight logs")
+            result = replay_run(source, args.out or source / "replay", config,
+                                progress=bar.update_to, truth_latlon=truth,
+                                redetect=not args.recorded_detections)
+        else:
+            if args.frames is None or config is None:
+                raise ConfigError("--frames" if args.frames is None else "--config",
+                                  f"a flight log ({source.name}) replays with the video or "
+                                  "image folder of its flight and the configuration "
+                                  "(search area, camera, estimator)")
+            result = replay_log(source, args.frames,
+                                args.out or source.with_name(f"{source.stem}-replay"), config,
+                                times, progress=bar.update_to, truth_latlon=truth)
     for warning in result.warnings:
         print(f"companion: warning: {warning}", file=sys.stderr)
     factor = result.flight_s / result.wall_s if result.wall_s > 0 else float("inf")
@@ -191,13 +206,28 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--config", type=Path, required=True, help="the service's TOML configuration")
     run.set_defaults(run=_run)
 
-    replay = sub.add_parser("replay", help="re-run a run folder's detections through the pipeline")
-    replay.add_argument("run_dir", metavar="RUN", type=Path,
-                        help="a run folder written by `companion run`")
+    replay = sub.add_parser("replay", help="re-run a flight through the pipeline offline: a run "
+                                           "folder, or a flight log with its video")
+    replay.add_argument("run_or_log", metavar="RUN_OR_LOG", type=Path,
+                        help="a run folder written by `companion run`, or a flight log: "
+                             "MAVLink .tlog, ArduPilot .bin or PX4 .ulg")
+    replay.add_argument("--frames", type=Path, default=None,
+                        help="with a log: the flight's video file or image folder")
+    replay.add_argument("--frame-times", type=Path, default=None,
+                        help="with a log: each frame's time on the log's clock (s), one per "
+                             "line or a t_s column")
+    replay.add_argument("--frame-offset-s", type=float, default=None,
+                        help="with a log: the log time of the first frame (instead of "
+                             "--frame-times)")
+    replay.add_argument("--frame-rate-hz", type=float, default=None,
+                        help="with --frame-offset-s: frames per second (default: the video's)")
     replay.add_argument("--config", type=Path, default=None,
-                        help="another configuration to tune with (default: the run's own)")
+                        help="the configuration: another one to tune a run with (default: the "
+                             "run's own); required with a log")
+    replay.add_argument("--recorded-detections", action="store_true",
+                        help="use a run's recorded detections even where its frames were kept")
     replay.add_argument("--out", type=Path, default=None,
-                        help="output folder (default: RUN/replay)")
+                        help="output folder (default: RUN/replay, or LOG-replay beside a log)")
     replay.add_argument("--truth", type=Path, default=None,
                         help="true target positions (CSV with lat, lon columns, or GeoJSON "
                              "points): prints each target's error")

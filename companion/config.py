@@ -153,10 +153,15 @@ class MissionConfig:
 
 @dataclass(frozen=True, slots=True)
 class OutputConfig:
-    """Where the run's reports go."""
+    """Where the run's reports go, and how much disk they may take."""
 
     dir: str
     plots: bool
+    frames: Literal["off", "jpg", "png"]
+    frames_budget_mb: float
+    jpeg_quality: int
+    max_runs_mb: float
+    min_free_mb: float
 
 
 @dataclass(frozen=True, slots=True)
@@ -290,6 +295,15 @@ SECTIONS: dict[str, tuple[Key, ...]] = {
     "output": (
         Key("dir", "dir", Text(), "runs", "folder for the run's reports; relative to this file"),
         Key("plots", "plots", Bool(), True, "write the study's plots at the end"),
+        Key("frames", "frames", Choice("off", "jpg", "png"), "off",
+            "keep each processed frame as an image (png: lossless, replay re-detects exactly)"),
+        Key("frames_budget_mb", "frames_budget_mb", Float(gt=0), 500.0,
+            "disk for one run's frames; past it only detections are kept, with a log line"),
+        Key("jpeg_quality", "jpeg_quality", Int(ge=1, le=100), 90, "JPEG quality of kept frames"),
+        Key("max_runs_mb", "max_runs_mb", Float(gt=0), 5000.0,
+            "all run folders together; the oldest are removed at start to stay under it"),
+        Key("min_free_mb", "min_free_mb", Float(ge=0), 500.0,
+            "free disk to leave: old runs are removed at start, frames stop below it"),
     ),
 }
 

@@ -90,17 +90,20 @@ class Kind(ABC, Generic[T]):
 
 
 class Int(Kind[int]):
-    def __init__(self, ge: int | None = None) -> None:
-        self.ge = ge
-        self.doc = "integer" if ge is None else f"integer >= {ge}"
+    def __init__(self, ge: int | None = None, le: int | None = None) -> None:
+        self.ge, self.le = ge, le
+        if ge is not None and le is not None:
+            self.doc = f"integer in [{ge}, {le}]"
+        else:
+            self.doc = "integer" if ge is None else f"integer >= {ge}"
 
     def parse(self, key: str, raw: object) -> int:
         # bool is an int subclass in Python but not an integer in TOML; a float is never an int.
         if isinstance(raw, bool) or not isinstance(raw, numbers.Integral):
             raise ConfigError(key, f"must be an integer, got {describe(raw)}")
         value = int(raw)
-        if self.ge is not None and value < self.ge:
-            raise ConfigError(key, f"must be >= {self.ge}, got {value}")
+        if (self.ge is not None and value < self.ge) or (self.le is not None and value > self.le):
+            raise ConfigError(key, f"must be {self.doc.removeprefix('integer ')}, got {value}")
         return value
 
 

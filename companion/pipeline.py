@@ -2,7 +2,8 @@
 
 `Pipeline.step(image, pose)` runs one estimator step on a frame: detect tags, project them to
 the ground in UTM, take the footprint this frame covered as the sensing region, and step the
-GM-PHD. `Pipeline.blind(t_s)` steps with no frame (camera down, no pose): it predicts but does
+GM-PHD. A blank frame (lens cap, black picture) or a camera too near the ground makes the step
+blind. `Pipeline.blind(t_s)` steps with no frame (camera down, no pose): it predicts but does
 not apply a no-detection update, because not seeing is not seeing nothing. It is synchronous and
 reads no clock: time comes with the pose.
 
@@ -19,7 +20,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.config import SearchConfig, ServiceConfig
+from companion.config import CameraConfig, SearchConfig, ServiceConfig
 from companion.geo import Utm
 from companion.plan.world import World
 from companion.sat.filter import SatParams, SatState, Scan, initial_state, step
@@ -28,6 +29,7 @@ from companion.sat.gp import GpPredictor
 from companion.sat.mixture import Mixture
 from companion.sat.predict import LinearModel
 from companion.sim.run import sat_params
+from companion.vision.calibration import load_calibration
 from companion.vision.camera import CameraModel
 from companion.vision.projection import (
     GeoPose,
@@ -38,10 +40,21 @@ from companion.vision.projection import (
 )
 from companion.vision.tags import TagDetector, detect_centres
 
-__all__ = ["Pipeline", "SearchFrame", "StepRecord"]
+__all__ = ["Pipeline", "SearchFrame", "StepRecord", "camera_model"]
 
 FloatArray = NDArray[np.float64]
 REBOOT_JUMP_S = 1.0  # the autopilot's boot time went back by more: it rebooted
+BLANK_FRAME_STD = 2.0  # grey levels: below this a frame shows nothing (lens cap, black frame)
+MIN_HEIGHT_M = 1.0  # lower than this the camera sees too little of the ground to count
+
+
+def camera_model(config: CameraConfig) -> CameraModel:
+    """The camera: from its calibration file, or an ideal pinhole of the configured view."""
+    if config.calibration is not None:
+        return load_calibration(config.calibration, config.mount_rpy_deg, config.mount_offset_m)
+    return CameraModel.from_hfov(config.hfov_deg, config.width_px, config.height_px,
+                                 mount_rpy_deg=config.mount_rpy_deg,
+                                 mount_offset_m=config.mount_offset_m)
 
 
 @dataclass(frozen=True)
@@ -170,6 +183,10 @@ class Pipeline:
 
     def step(self, image: NDArray[np.uint8], pose: GeoPose) -> StepRecord:
         """One estimator step on a frame taken at pose.t_s (the autopilot's boot time)."""
+        if pose.height_agl_m < MIN_HEIGHT_M:
+            return self.blind(pose.t_s, "on the ground")
+        if float(np.std(image[::4, ::4])) < BLANK_FRAME_STD:
+            return self.blind(pose.t_s, "blank frame")
         det = self.config.detector
         _, pixels = detect_centres(self.detector, image, det.min_decision_margin,
                                    det.allowed_ids)

@@ -1,12 +1,18 @@
-"""Replay a run folder of the service: its recorded detections and poses through the pipeline.
+"""Replay a flight offline through the pipeline: a run folder of ours, or another tool's log.
 
 `replay_run(run_dir, out_dir, config)` reads the run's `steps.jsonl` (each step's input: the
-autopilot boot time, the pose at the frame's capture time and the detected tag centres, or the
-blind reason). It steps a fresh `Pipeline` over them with the run's configuration
-(`config.json`) and camera (`camera.json`), or with another configuration to tune parameters
-after the flight. It writes the same reports as the live run. It is deterministic: the same
-inputs give byte-identical outputs, and with the run's own configuration the confirmed tracks
-are the live run's.
+autopilot boot time, the pose at the frame's capture time and the detected tag centres or the
+kept frame, or the blind reason). It steps a fresh `Pipeline` over them with the run's
+configuration (`config.json`) and camera (`camera.json`), or with another configuration to tune
+parameters after the flight. Where the run kept its frames, detection runs again on them.
+
+`replay_log(log, frames, out_dir, config, times)` pairs the poses of a flight log (.tlog, .bin,
+.ulg; see `companion.flightlog`) with the frames of a video or an image folder, each frame at
+its time on the autopilot's boot clock, and steps the pipeline at the configured estimator rate.
+
+Both write the live run's reports (steps.jsonl, tracks.geojson/csv, summary.json, plots), and
+with true positions the error table and the Mahalanobis distance of each target to its closest
+track over time. Deterministic: the same inputs give byte-identical outputs.
 """
 
 from __future__ import annotations
@@ -14,18 +20,22 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import math
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from companion.config import ServiceConfig, parse_config
 from companion.errors import InputError
-from companion.pipeline import Pipeline
+from companion.flightlog import read_flight_log
+from companion.metrics import mahalanobis_to_tracks
+from companion.pipeline import Pipeline, StepRecord, camera_model
 from companion.report import (
     Score,
     TrackRecord,
@@ -34,13 +44,16 @@ from companion.report import (
     write_csv,
     write_geojson,
 )
-from companion.sim.plots import plot_flight
+from companion.sim.plots import plot_flight, plot_mahalanobis
+from companion.vehicle.pose_buffer import PoseBuffer
 from companion.vision.camera import CameraModel
 from companion.vision.projection import GeoPose
 
-__all__ = ["ReplayResult", "load_truth", "replay_run"]
+__all__ = ["FrameTimes", "ReplayResult", "load_truth", "replay_log", "replay_run"]
 
 FloatArray = NDArray[np.float64]
+Progress = Callable[[int, int], None]
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".pgm", ".tif", ".tiff")
 
 
 @dataclass(frozen=True)
@@ -54,6 +67,19 @@ class ReplayResult:
     wall_s: float
     flight_s: float  # the autopilot time the steps span
     score: Score | None = None  # against the truth file, when one was given
+
+
+@dataclass(frozen=True)
+class FrameTimes:
+    """When each frame was taken, on the log's boot clock: a file of times, or offset + k / rate.
+
+    Neither given: an image folder's own index.csv (written by the service), else an error.
+    rate_hz None with an offset: the video's own frame rate.
+    """
+
+    file: Path | None = None
+    offset_s: float | None = None
+    rate_hz: float | None = None
 
 
 def load_truth(path: Path) -> FloatArray:
@@ -98,55 +124,259 @@ def _camera(path: Path) -> CameraModel:
         raise InputError(f"{path}: not a camera model written by the service: {exc}") from exc
 
 
+class _Replay:
+    """A fresh pipeline and the replay's outputs: the steps log, then tracks, plots, summary."""
+
+    def __init__(self, config: ServiceConfig, camera: CameraModel, out_dir: Path,
+                 truth_latlon: FloatArray | None) -> None:
+        self.config = config
+        self.pipeline = Pipeline(config, camera)
+        self.out_dir = out_dir
+        self.warnings: list[str] = []
+        self.started = time.perf_counter()
+        frame = self.pipeline.frame
+        self.truth_xy: FloatArray | None = None
+        if truth_latlon is not None:
+            e, n = frame.utm.geodetic_to_utm(truth_latlon[:, 0], truth_latlon[:, 1])
+            self.truth_xy = frame.from_utm(np.column_stack([e, n]))
+        self.t_s: list[float] = []
+        self.mahalanobis: list[FloatArray] = []  # per step: each target to its closest track
+        out_dir.mkdir(parents=True, exist_ok=True)
+        self._steps: TextIO = (out_dir / "steps.jsonl").open("w", encoding="utf-8")
+
+    def add(self, record: StepRecord) -> None:
+        """Log one step; with truth, each target's Mahalanobis distance to its closest track."""
+        self._steps.write(json.dumps(record.to_json(self.pipeline.frame),
+                                     separators=(",", ":")) + "\n")
+        state = self.pipeline.state
+        if self.truth_xy is not None and state is not None:
+            confirmed = state.tracks.confirmed
+            closest, _ = mahalanobis_to_tracks(self.truth_xy, state.tracks.means[confirmed, :2],
+                                               state.tracks.covs[confirmed, :2, :2])
+            self.t_s.append(record.t_s)
+            self.mahalanobis.append(closest)
+
+    def finish(self, steps: int, flight_s: float, **summary: Any) -> ReplayResult:
+        """Write the tracks, plots and summary.json; the result."""
+        self._steps.close()
+        out, frame, state = self.out_dir, self.pipeline.frame, self.pipeline.state
+        tracks = [] if state is None else confirmed_tracks(
+            state.tracks, frame.origin_utm_m, frame.utm.epsg, frame.to_latlon)
+        write_geojson(out / "tracks.geojson", tracks)
+        write_csv(out / "tracks.csv", tracks)
+        tracks_en = np.array([[t.easting_m, t.northing_m] for t in tracks]).reshape(-1, 2)
+        targets = 0 if self.truth_xy is None else len(self.truth_xy)
+        mahal = np.array(self.mahalanobis, dtype=np.float64).reshape(len(self.t_s), targets)
+        if self.config.output.plots:
+            records = [json.loads(line) for line in (out / "steps.jsonl").read_text().splitlines()]
+            plot_flight(records, tracks_en, out, frame.to_utm(frame.area_xy_m))
+            if self.truth_xy is not None:
+                plot_mahalanobis(np.array(self.t_s), mahal, out)
+        body: dict[str, Any] = {"steps": steps, **summary, "confirmed": len(tracks),
+                                "warnings": self.warnings,
+                                "tracks": [dataclasses.asdict(t) for t in tracks]}
+        result_score = None
+        if self.truth_xy is not None:
+            result_score = score(tracks_en, frame.to_utm(self.truth_xy))
+            final = mahal[-1] if len(mahal) else np.full(len(self.truth_xy), np.inf)
+            body["truth"] = {"errors_m": _finite_or_none(result_score.errors_m, 4),
+                             "mahalanobis_final": _finite_or_none(final, 3),
+                             "missed": result_score.missed,
+                             "false_tracks": result_score.false_tracks}
+        (out / "summary.json").write_text(json.dumps(body, indent=1))
+        return ReplayResult(out, steps, tracks, self.warnings,
+                            time.perf_counter() - self.started, flight_s, result_score)
+
+
+def _finite_or_none(values: FloatArray, digits: int) -> list[float | None]:
+    return [round(float(x), digits) if math.isfinite(x) else None for x in values]
+
+
+def _read_image(path: Path) -> NDArray[np.uint8]:
+    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if image is None:
+        raise InputError(f"{path}: not an image OpenCV can read")
+    return np.asarray(image, dtype=np.uint8)
+
+
 def replay_run(run_dir: Path, out_dir: Path, config: ServiceConfig | None = None,
-               progress: Callable[[int, int], None] | None = None,
-               truth_latlon: FloatArray | None = None) -> ReplayResult:
-    """Re-run a run folder's steps; config replaces the run's own configuration."""
-    started = time.perf_counter()
+               progress: Progress | None = None, truth_latlon: FloatArray | None = None,
+               redetect: bool = True) -> ReplayResult:
+    """Re-run a run folder's steps (detection too where frames were kept and redetect is set);
+    config replaces the run's own configuration."""
     if not (run_dir / "steps.jsonl").is_file():
         raise InputError(f"{run_dir}: not a run folder of the service (no steps.jsonl)")
     if config is None:
         config = parse_config(json.loads((run_dir / "config.json").read_text()))
-    camera = _camera(run_dir / "camera.json")
-    pipeline = Pipeline(config, camera)
-    warnings: list[str] = []
-    inputs = [(r["input"], r.get("blind")) for r in _records(run_dir / "steps.jsonl", warnings)
-              if "input" in r]
-    out_dir.mkdir(parents=True, exist_ok=True)
-    with (out_dir / "steps.jsonl").open("w", encoding="utf-8") as steps:
-        for k, (step, blind) in enumerate(inputs):
-            if "pixels" in step:
-                lat, lon, alt, height, *q = step["pose"]
-                pose = GeoPose(step["boot_t_s"], lat, lon, alt, height, tuple(q))
+    replay = _Replay(config, _camera(run_dir / "camera.json"), out_dir, truth_latlon)
+    pipeline = replay.pipeline
+    inputs = [(r["input"], r.get("blind")) for r in _records(run_dir / "steps.jsonl",
+                                                              replay.warnings) if "input" in r]
+    missing = 0
+    for k, (step, blind) in enumerate(inputs):
+        if "pose" in step:
+            lat, lon, alt, height, *q = step["pose"]
+            pose = GeoPose(step["boot_t_s"], lat, lon, alt, height, tuple(q))
+            image_path = run_dir / step["frame"] if redetect and "frame" in step else None
+            if image_path is not None and image_path.is_file():
+                record = pipeline.step(_read_image(image_path), pose)
+            else:
+                missing += image_path is not None
                 pixels = np.array(step["pixels"], dtype=np.float64).reshape(-1, 2)
                 record = pipeline.step_detections(pixels, pose)
-            else:
-                record = pipeline.blind(step["boot_t_s"], blind or "blind")
-            steps.write(json.dumps(record.to_json(pipeline.frame), separators=(",", ":")) + "\n")
-            if progress is not None:
-                progress(k + 1, len(inputs))
-    frame = pipeline.frame
-    tracks = [] if pipeline.state is None else confirmed_tracks(
-        pipeline.state.tracks, frame.origin_utm_m, frame.utm.epsg, frame.to_latlon)
-    write_geojson(out_dir / "tracks.geojson", tracks)
-    write_csv(out_dir / "tracks.csv", tracks)
-    if config.output.plots:
-        records = [json.loads(line) for line in (out_dir / "steps.jsonl").read_text().splitlines()]
-        plot_flight(records, np.array([[t.easting_m, t.northing_m] for t in tracks]), out_dir)
+        else:
+            record = pipeline.blind(step["boot_t_s"], blind or "blind")
+        replay.add(record)
+        if progress is not None:
+            progress(k + 1, len(inputs))
+    if missing:
+        replay.warnings.append(f"{missing} kept frames are missing: their recorded detections "
+                               "were used")
     span_s = inputs[-1][0]["boot_t_s"] - inputs[0][0]["boot_t_s"] if len(inputs) > 1 else 0.0
-    summary: dict[str, Any] = {"steps": len(inputs), "confirmed": len(tracks),
-                               "warnings": warnings,
-                               "tracks": [dataclasses.asdict(t) for t in tracks]}
-    result_score = None
-    if truth_latlon is not None:
-        e, n = frame.utm.geodetic_to_utm(truth_latlon[:, 0], truth_latlon[:, 1])
-        truth_en = np.column_stack([e, n])
-        tracks_en = np.array([[t.easting_m, t.northing_m] for t in tracks]).reshape(-1, 2)
-        result_score = score(tracks_en, truth_en)
-        summary["truth"] = {"errors_m": [None if not np.isfinite(x) else round(float(x), 4)
-                                         for x in result_score.errors_m],
-                            "missed": result_score.missed,
-                            "false_tracks": result_score.false_tracks}
-    (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
-    return ReplayResult(out_dir, len(inputs), tracks, warnings,
-                        time.perf_counter() - started, float(span_s), result_score)
+    return replay.finish(len(inputs), float(span_s))
+
+
+# -- flight logs of other tools ---------------------------------------------------------------
+
+
+def _frame_times_file(path: Path) -> FloatArray:
+    """Frame times from a CSV with a t_s or capture_t_s column, or one number per line."""
+    try:
+        lines = [line.strip() for line in path.read_text().splitlines() if line.strip()]
+        if lines and not _is_number(lines[0].split(",")[0]):
+            rows = list(csv.DictReader(lines))
+            column = next((c for c in ("t_s", "capture_t_s") if c in rows[0]), None) \
+                if rows else None
+            if column is None:
+                raise InputError(f"{path}: frame times need a t_s or capture_t_s column")
+            times = [float(row[column]) for row in rows]
+        else:
+            times = [float(line.split(",")[0]) for line in lines]
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: not a file of frame times: {exc}") from exc
+    t = np.array(times, dtype=np.float64)
+    if not np.all(np.isfinite(t)) or np.any(np.diff(t) < 0):
+        raise InputError(f"{path}: frame times must be finite and in order")
+    return t
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+class _Frames:
+    """The frames of a video file or an image folder, read in order, with their times."""
+
+    def __init__(self, path: Path, times: FrameTimes) -> None:
+        self.path = path
+        self._video: Any = None
+        self._files: list[Path] = []
+        own_times: FloatArray | None = None
+        if path.is_dir():
+            index = path / "index.csv"
+            if index.is_file():
+                with index.open(newline="") as fh:
+                    rows = list(csv.DictReader(fh))
+                self._files = [path.parent / r["file"] if (path.parent / r["file"]).is_file()
+                               else path / Path(r["file"]).name for r in rows]
+                own_times = _frame_times_file(index)
+            else:
+                self._files = sorted(f for f in path.iterdir()
+                                     if f.suffix.lower() in IMAGE_SUFFIXES)
+            if not self._files:
+                raise InputError(f"{path}: no images in this folder")
+            count, fps = len(self._files), None
+        elif path.is_file():
+            self._video = cv2.VideoCapture(str(path))
+            if not self._video.isOpened():
+                raise InputError(f"{path}: not a video OpenCV can read")
+            count = int(self._video.get(cv2.CAP_PROP_FRAME_COUNT))
+            fps = float(self._video.get(cv2.CAP_PROP_FPS)) or None
+        else:
+            raise InputError(f"{path}: no such video file or image folder")
+        if times.file is not None:
+            self.t_s = _frame_times_file(times.file)
+        elif times.offset_s is not None:
+            rate = times.rate_hz or fps
+            if rate is None or not rate > 0:
+                raise InputError(f"{path}: the video gives no frame rate: pass one")
+            n = count if count > 0 else 0
+            self.t_s = times.offset_s + np.arange(n, dtype=np.float64) / rate
+        elif own_times is not None:
+            self.t_s = own_times
+        else:
+            raise InputError(f"{path}: the frames' times are unknown: pass a file of frame "
+                             "times, or the log time of the first frame (and the rate)")
+        self.count = int(self.t_s.size)
+
+    def __iter__(self) -> Iterator[tuple[int, float, NDArray[np.uint8] | None]]:
+        """(index, t_s, image) for every frame; image None when it is not wanted (skipped)."""
+        for k, t_s in enumerate(self.t_s):
+            if self._video is not None:
+                ok, image = self._video.read()
+                if not ok:
+                    return
+                yield k, float(t_s), cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+            elif k < len(self._files):
+                yield k, float(t_s), _read_image(self._files[k])
+            else:
+                return
+
+    def close(self) -> None:
+        """Release the video."""
+        if self._video is not None:
+            self._video.release()
+
+
+def replay_log(log_path: Path, frames_path: Path, out_dir: Path, config: ServiceConfig,
+               times: FrameTimes, progress: Progress | None = None,
+               truth_latlon: FloatArray | None = None) -> ReplayResult:
+    """Detect, project and estimate over a video (or image folder) with the poses of a log."""
+    log = read_flight_log(log_path)
+    buffer = PoseBuffer(max_age_s=1e9, max_gap_s=config.pose.max_gap_s)
+    for t_s, lat, lon, amsl, rel in log.positions:
+        buffer.add_position(t_s, lat, lon, amsl, rel)
+    for t_s, *q in log.attitudes:
+        buffer.add_attitude(t_s, (q[0], q[1], q[2], q[3]))
+    frames = _Frames(frames_path, times)
+    replay = _Replay(config, camera_model(config.camera), out_dir, truth_latlon)
+    replay.warnings.extend(log.warnings)
+    pipeline, period_s = replay.pipeline, 1.0 / config.estimator.rate_hz
+    next_s, steps, read, used = -math.inf, 0, 0, 0
+    first_s = last_s = math.nan
+    try:
+        for k, t_s, image in frames:
+            read = k + 1
+            if progress is not None:
+                progress(read, frames.count)
+            if t_s < next_s:
+                continue  # one step per estimator period, as the live service does
+            next_s = max(next_s + period_s, t_s)
+            sample = buffer.at(t_s)
+            if sample is None:
+                record = pipeline.blind(t_s, "no pose at the capture time")
+            else:
+                pose = GeoPose(t_s, sample.lat_deg, sample.lon_deg, sample.alt_amsl_m,
+                               max(sample.alt_rel_m, 0.0), sample.q_wxyz)
+                record = pipeline.step(np.asarray(image, dtype=np.uint8), pose)
+                used += record.blind is None
+            replay.add(record)
+            steps += 1
+            first_s = t_s if steps == 1 else first_s
+            last_s = t_s
+    finally:
+        frames.close()
+    if read < frames.count:
+        replay.warnings.append(f"{frames_path.name}: {frames.count} frame times but only "
+                               f"{read} frames (a truncated video?): replayed those")
+    if used == 0:
+        replay.warnings.append(f"no frame lies within the log's poses "
+                               f"({log.positions[0, 0]:.1f}-{log.positions[-1, 0]:.1f} s): "
+                               "check the frame times")
+    flight_s = last_s - first_s if steps > 1 else 0.0
+    return replay.finish(steps, float(flight_s), log=str(log_path), log_format=log.format,
+                         frames=read, frames_used=used)

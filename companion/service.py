@@ -35,11 +35,11 @@ from numpy.typing import NDArray
 
 from companion import mission as ms
 from companion.camera.source import Frame, LatestFrameGrabber, open_source
-from companion.config import CameraConfig, ServiceConfig
+from companion.config import ServiceConfig
 from companion.errors import CompanionError
 from companion.geo import LocalNed
 from companion.notify import Notifier
-from companion.pipeline import Pipeline, StepRecord
+from companion.pipeline import Pipeline, StepRecord, camera_model
 from companion.plan.gate import GateLimits, Setpoint, gate
 from companion.plan.planners import (
     LargestGaussian,
@@ -49,24 +49,24 @@ from companion.plan.planners import (
     lawnmower_path,
     move_towards,
 )
+from companion.record.frames import FrameRecorder
+from companion.record.rotation import make_room
 from companion.record.tlog import TlogWriter
 from companion.report import TrackRecord, confirmed_tracks, write_csv, write_geojson
 from companion.sim.plots import plot_flight
 from companion.vehicle.mavsdk_link import FlightMode, MavsdkLink, VehicleError
 from companion.vehicle.view import VehicleView
-from companion.vision.calibration import load_calibration
 from companion.vision.camera import CameraModel
 from companion.vision.projection import GeoPose
 
 __all__ = ["RunResult", "Service", "camera_model"]
 
 FloatArray = NDArray[np.float64]
-BLANK_FRAME_STD = 2.0  # grey levels: below this a frame shows nothing (lens cap, black frame)
-MIN_HEIGHT_M = 1.0  # lower than this the camera sees too little of the ground to count
 TELEMETRY_STALE_S = 2.0  # no telemetry for this long: the link is down
 BATTERY_LOW_PERCENT = 20.0
 REACHED_M = 1.5  # the vehicle is this close to a waypoint: the planner moves on
 STREAM_SETTLE_S = 0.5  # PX4 accepts OFFBOARD only after setpoints have streamed (> 2 Hz)
+ESTIMATOR_STOP_S = 2.0  # wall time the step under way may take to end when the mission stops
 
 _MODES = {
     FlightMode.OFFBOARD: ms.FlightMode.OFFBOARD, FlightMode.HOLD: ms.FlightMode.HOLD,
@@ -77,15 +77,6 @@ _MODES = {
     FlightMode.LAND: ms.FlightMode.LAND, FlightMode.RETURN_TO_LAUNCH: ms.FlightMode.RTL,
     FlightMode.UNKNOWN: ms.FlightMode.UNKNOWN,
 }
-
-
-def camera_model(config: CameraConfig) -> CameraModel:
-    """The camera: from its calibration file, or an ideal pinhole of the configured view."""
-    if config.calibration is not None:
-        return load_calibration(config.calibration, config.mount_rpy_deg, config.mount_offset_m)
-    return CameraModel.from_hfov(config.hfov_deg, config.width_px, config.height_px,
-                                 mount_rpy_deg=config.mount_rpy_deg,
-                                 mount_offset_m=config.mount_offset_m)
 
 
 @dataclass
@@ -153,6 +144,7 @@ class Service:
         self._last_step_wall_s = -math.inf  # when the pipeline last finished a step
         self._last_watchdog_wall_s = -math.inf
         self._ready_sent = False
+        self._frames: FrameRecorder | None = None
 
     # -- configuration -----------------------------------------------------------------------
 
@@ -177,12 +169,22 @@ class Service:
     async def run(self, stop: asyncio.Event | None = None) -> RunResult:
         """Fly the mission until it is over or `stop` is set; write the reports."""
         stop = stop or asyncio.Event()
-        out = _run_dir(Path(self.config.output.dir), datetime.now(UTC))
+        o = self.config.output
+        out = _run_dir(Path(o.dir), datetime.now(UTC))
         self._events = _JsonLines(out / "events.jsonl")
+        self._event("start", out_dir=str(out))
+        for removed in make_room(Path(o.dir), max_total_bytes=int(o.max_runs_mb * 1e6),
+                                 min_free_bytes=int(o.min_free_mb * 1e6), keep=[out],
+                                 log=self._log):
+            self._event("run_removed", path=str(removed.path), bytes=removed.bytes)
         steps = _JsonLines(out / "steps.jsonl")
         tlog = TlogWriter(out / "flight.tlog")
+        if o.frames != "off":
+            self._frames = FrameRecorder(
+                out / "frames", budget_bytes=int(o.frames_budget_mb * 1e6),
+                min_free_bytes=int(o.min_free_mb * 1e6), image_format=o.frames,
+                jpeg_quality=o.jpeg_quality, log=self._log)
         self._snapshot(out)
-        self._event("start", out_dir=str(out))
         try:
             await self._fly(stop, steps, tlog)
             tracks = self._write_reports(out)
@@ -196,6 +198,9 @@ class Service:
             self.notifier.close()
             self.counters["tlog_messages"] = tlog.written
             tlog.close()
+            if self._frames is not None:
+                self.counters["frames_kept"] = self._frames.kept
+                self._frames.close()
             steps.close()
             self._events.close()
         return RunResult(out, tracks, self.mission.state.value, dict(self.counters))
@@ -214,10 +219,13 @@ class Service:
                 try:
                     async with asyncio.TaskGroup() as group:
                         tasks = [group.create_task(link.run_telemetry(self.view)),
-                                 group.create_task(link.run_recording(record)),
-                                 group.create_task(self._estimate(grabber, steps))]
+                                 group.create_task(link.run_recording(record))]
+                        done = asyncio.Event()
+                        estimator = group.create_task(self._estimate(grabber, steps, done))
                         await self._control(link, stop)
-                        for task in tasks:
+                        done.set()  # the step under way ends and is logged, unless it hangs
+                        await asyncio.wait([estimator], timeout=ESTIMATOR_STOP_S)
+                        for task in [*tasks, estimator]:
                             task.cancel()
                 except ExceptionGroup as failed:  # a task died: report its own error
                     raise failed.exceptions[0] from failed
@@ -237,14 +245,25 @@ class Service:
         if self._events is not None:
             self._events.write({"t_s": round(self.clock(), 6), "event": event, **fields})
 
+    def _log(self, line: str) -> None:
+        """A line for the operator (the journal) and the run's events."""
+        self.announce(line)
+        self._event("log", message=line)
+
     # -- estimator ---------------------------------------------------------------------------
 
-    async def _estimate(self, grabber: LatestFrameGrabber, steps: _JsonLines) -> None:
+    async def _estimate(self, grabber: LatestFrameGrabber, steps: _JsonLines,
+                        done: asyncio.Event) -> None:
+        """One step per period on the newest frame (no backlog builds up), until done is set."""
         period_s = 1.0 / self.config.estimator.rate_hz
         loop = asyncio.get_running_loop()
         next_s = self.clock()
-        while True:  # one step per period, on the newest frame; no backlog builds up
-            await asyncio.sleep(max(next_s - self.clock(), 0.0) / self.time_scale)
+        while not done.is_set():
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(done.wait(),
+                                       max(next_s - self.clock(), 0.0) / self.time_scale)
+            if done.is_set():
+                return
             next_s = max(next_s + period_s, self.clock())
             frame = await loop.run_in_executor(None, grabber.get,
                                                0.5 * period_s / self.time_scale)
@@ -270,17 +289,17 @@ class Service:
         sample = self.view.poses.at(capture_s)
         if sample is None:
             return self.pipeline.blind(capture_s, "no pose at the capture time")
-        if sample.alt_rel_m < MIN_HEIGHT_M:
-            return self.pipeline.blind(capture_s, "on the ground")
-        if float(np.std(frame.image[::4, ::4])) < BLANK_FRAME_STD:
-            return self.pipeline.blind(capture_s, "blank frame")
         pose = GeoPose(capture_s, sample.lat_deg, sample.lon_deg, sample.alt_amsl_m,
                        sample.alt_rel_m, sample.q_wxyz)
         started = time.perf_counter()
         record = await loop.run_in_executor(None, self.pipeline.step, frame.image, pose)
-        self.counters["frames_used"] += 1
+        self.counters["frames_used"] += record.blind is None
         record.extra["latency_ms"] = round(1e3 * (self.clock() - frame.receive_time_s), 2)
         record.extra["process_ms"] = round(1e3 * (time.perf_counter() - started), 2)
+        if self._frames is not None and record.blind is None:
+            kept = await loop.run_in_executor(None, self._frames.write, frame.image, capture_s)
+            if kept is not None:
+                record.extra["input"]["frame"] = kept
         return record
 
     # -- control -----------------------------------------------------------------------------
@@ -479,6 +498,8 @@ class Service:
     def _plot(self, out: Path, records: list[TrackRecord]) -> None:
         steps = [json.loads(line) for line in (out / "steps.jsonl").read_text().splitlines()]
         try:
-            plot_flight(steps, np.array([[r.easting_m, r.northing_m] for r in records]), out)
+            frame = self.pipeline.frame
+            plot_flight(steps, np.array([[r.easting_m, r.northing_m] for r in records]), out,
+                        frame.to_utm(frame.area_xy_m))
         except CompanionError as exc:  # no matplotlib: the run's data is all there anyway
             self._event("plots_skipped", reason=str(exc))

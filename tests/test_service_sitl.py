@@ -99,9 +99,26 @@ def test_pilot_takeover_stops_commanding_and_estimating_goes_on(tmp_path: Path) 
 
 
 def test_a_black_camera_loses_no_confirmed_track(tmp_path: Path) -> None:
+    """Also: kept frames stop at their disk budget, and old runs make room for the new one."""
+    for day in (1, 2):  # two old runs of 2 MB each; all runs may take 3 MB
+        old = tmp_path / f"run-200001{day:02d}T000000Z"
+        old.mkdir()
+        (old / "steps.jsonl").write_bytes(bytes(2_000_000))
     black_s, black_for_s = 90.0, 10.0
     result = _fly(_scenario(), tmp_path, faults=f"black@{black_s:g}+{black_for_s:g}",
-                  stop_after_s=black_s + black_for_s + 10.0)
+                  stop_after_s=black_s + black_for_s + 10.0,
+                  output={"frames": "jpg", "frames_budget_mb": 1.0, "max_runs_mb": 3.0})
+    logged = [e["message"] for e in _lines(result.run.out_dir / "events.jsonl")
+              if e["event"] == "log"]
+    assert logged[0] == ("runs: removed run-20000101T000000Z (2.0 MB) to keep the runs under "
+                         "3 MB and 500 MB free")
+    assert not (tmp_path / "run-20000101T000000Z").exists()
+    assert (tmp_path / "run-20000102T000000Z").exists()
+    stopped = [m for m in logged if m.startswith("frames: no longer kept")]
+    assert stopped == [stopped[0]] and "the budget of 1.0 MB is reached" in stopped[0]
+    kept = sorted((result.run.out_dir / "frames").glob("*.jpg"))
+    assert 3 < len(kept) == result.run.counters["frames_kept"]
+    assert sum(f.stat().st_size for f in kept) <= 1_000_000
     steps = _lines(result.run.out_dir / "steps.jsonl")
     before = [s for s in steps if s["t_s"] < black_s]
     during = [s for s in steps if black_s + 0.5 < s["t_s"] < black_s + black_for_s]

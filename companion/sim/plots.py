@@ -34,6 +34,7 @@ __all__ = [
     "aggregate",
     "plot_bands",
     "plot_flight",
+    "plot_mahalanobis",
     "plot_run",
 ]
 
@@ -376,12 +377,13 @@ def _trajectory_figure(r: SimResult, where: str) -> Figure:
 # ---------------------------------------------------------------------------------------------
 
 
-def plot_flight(steps: Sequence[dict[str, Any]], tracks_en_m: FloatArray, out_dir: Path
-                ) -> list[Path]:
-    """A service run's map (path, footprints, detections, confirmed tracks, UTM) and its counts.
+def plot_flight(steps: Sequence[dict[str, Any]], tracks_en_m: FloatArray, out_dir: Path,
+                area_en_m: FloatArray | None = None) -> list[Path]:
+    """A service run's map (area, path, footprints, detections, confirmed tracks, UTM) and counts.
 
     `steps` are the records of a run's steps.jsonl; tracks_en_m (n, 2) the confirmed tracks'
-    easting and northing. Writes flight-map.png and flight-count.png in out_dir.
+    easting and northing; area_en_m (k, 2) the search area's outline. Writes flight-map.png and
+    flight-count.png in out_dir.
     """
     _require_matplotlib()
     seen = [s for s in steps if s.get("vehicle_utm")]
@@ -393,6 +395,9 @@ def plot_flight(steps: Sequence[dict[str, Any]], tracks_en_m: FloatArray, out_di
 
     fig = _figure(MAP_FIGSIZE_IN)
     ax = fig.add_subplot()
+    if area_en_m is not None:
+        area = np.vstack([area_en_m, area_en_m[:1]])
+        ax.plot(area[:, 0], area[:, 1], color="tab:green", linewidth=1.2, label="search area")
     for s in seen[::every]:
         outline = np.array(s["region_utm"] + s["region_utm"][:1])
         ax.plot(outline[:, 0], outline[:, 1], color="0.8", linewidth=0.6)
@@ -420,6 +425,31 @@ def plot_flight(steps: Sequence[dict[str, Any]], tracks_en_m: FloatArray, out_di
     ax.legend(loc="best", fontsize="small")
     written.append(_save(fig, out_dir / "flight-count.png"))
     return written
+
+
+def plot_mahalanobis(t_s: FloatArray, closest: FloatArray, out_dir: Path) -> Path:
+    """Each true target's Mahalanobis distance to its closest confirmed track over time.
+
+    closest (steps, targets); +inf where no track is confirmed. Writes flight-mahalanobis.png.
+    """
+    _require_matplotlib()
+    fig = _figure(SERIES_FIGSIZE_IN)
+    ax = fig.add_subplot()
+    t = _gaps(t_s)
+    values = np.asarray(closest, dtype=np.float64).reshape(t.size, -1)
+    for j in range(values.shape[1]):
+        ax.plot(t, _gaps(values[:, j]), linewidth=1.0, label=f"target {j}")
+    finite = values[np.isfinite(values) & (values > 0)]
+    if finite.size and float(finite.max()) > 10.0 * float(finite.min()):
+        ax.set_yscale("log")
+    ax.set_title("Mahalanobis distance, each true target to its closest confirmed track")
+    _time_axis(ax, t)
+    ax.set_xlabel("autopilot time (s)")
+    ax.set_ylabel("Mahalanobis distance")
+    ax.grid(True, alpha=0.3, which="both")
+    if 0 < values.shape[1] <= 12:
+        ax.legend(loc="best", fontsize="small", title="gaps: no confirmed track yet")
+    return _save(fig, out_dir / "flight-mahalanobis.png")
 
 
 def _require_matplotlib() -> None:
