@@ -15,8 +15,12 @@ import sys
 from collections.abc import Callable, Sequence
 from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from companion.errors import CompanionError, ConfigError
+
+if TYPE_CHECKING:
+    from companion.config import ServiceConfig
 
 EXIT_OK, EXIT_ERROR, EXIT_USAGE = 0, 1, 2
 
@@ -85,10 +89,19 @@ def _learn_gp(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _check_signing_key(config: ServiceConfig) -> None:
+    """A signing key file that is missing, malformed or readable by others stops the start."""
+    if config.vehicle.signing_key_file is not None:
+        from companion.vehicle.signing import load_signing_key
+
+        load_signing_key(Path(config.vehicle.signing_key_file))
+
+
 def _check_config(args: argparse.Namespace) -> int:
     from companion.config import load_config
 
     config = load_config(args.config)
+    _check_signing_key(config)
     s = config.search
     print(f"{args.config}: ok (vehicle {config.vehicle.connection}, camera "
           f"{config.camera.source}, search area of {s.area_latlon.shape[0]} vertices in "
@@ -105,6 +118,7 @@ def _run(args: argparse.Namespace) -> int:
     from companion.vehicle.mavsdk_link import route_mavsdk_log
 
     config = load_config(args.config)
+    _check_signing_key(config)
     route_mavsdk_log(lambda line: print(line, file=sys.stderr, flush=True))
 
     async def fly() -> int:

@@ -59,6 +59,7 @@ class VehicleConfig:
     connection: str
     connect_timeout_s: float
     telemetry_rate_hz: float
+    signing_key_file: str | None
 
 
 @dataclass(frozen=True, slots=True)
@@ -97,6 +98,8 @@ class PoseConfig:
     attitude_std_deg: float
     heading_std_deg: float
     max_gap_s: float
+    glitch_gate_m: float
+    glitch_accept_after_s: float
 
 
 @dataclass(frozen=True, slots=True)
@@ -190,6 +193,9 @@ SECTIONS: dict[str, tuple[Key, ...]] = {
             "seconds to wait for the autopilot's heartbeat"),
         Key("telemetry_rate_hz", "telemetry_rate_hz", Float(gt=0, le=200), 20.0,
             "rate asked for position and attitude (an ArduPilot sends nothing unasked)"),
+        Key("signing_key_file", "signing_key_file", Text(), Derived("none: unsigned MAVLink"),
+            "MAVLink 2 signing key (64 hex digits, mode 0600): the link to the autopilot goes "
+            "through a signing relay (docs/signing.md)"),
     ),
     "camera": (
         Key("source", "source", Text(), REQUIRED,
@@ -235,6 +241,11 @@ SECTIONS: dict[str, tuple[Key, ...]] = {
             "standard deviation of the heading"),
         Key("max_gap_s", "max_gap_s", Float(gt=0, le=10), 0.5,
             "a frame whose capture time falls in a longer gap of telemetry has no pose"),
+        Key("glitch_gate_m", "glitch_gate_m", Float(gt=0, le=1000), 8.0,
+            "a position further than this from where the velocity puts it is a GPS glitch: "
+            "refused, and frames taken then are blind"),
+        Key("glitch_accept_after_s", "glitch_accept_after_s", Float(gt=0, le=600), 10.0,
+            "a jump that lasts this long is believed (the estimate was reset)"),
     ),
     "estimator": (
         Key("rate_hz", "rate_hz", Float(gt=0, le=30), 2.0,
@@ -341,7 +352,10 @@ def parse_config(data: Mapping[str, Any], base: Path | None = None) -> ServiceCo
     if search["utm_epsg"] is None:
         lat, lon = area.mean(axis=0)
         search["utm_epsg"] = utm_zone_for(float(lat), float(lon))
-    Utm(search["utm_epsg"])  # checks the code
+    try:
+        Utm(search["utm_epsg"])  # checks the code
+    except ConfigError as exc:  # Utm names the scenario's key (geo.utm_epsg); here it is ours
+        raise ConfigError("search.utm_epsg", exc.problem) from exc
     safety = read("safety")
     if safety["geofence_latlon"] is None:
         safety["geofence_latlon"] = area
@@ -358,8 +372,11 @@ def parse_config(data: Mapping[str, Any], base: Path | None = None) -> ServiceCo
         raise ConfigError("search.expected_targets", "is required when mission.end = \"targets\"")
     output = read("output")
     output["dir"] = _relative(base, output["dir"])
+    vehicle = read("vehicle")
+    if vehicle["signing_key_file"] is not None:
+        vehicle["signing_key_file"] = _relative(base, vehicle["signing_key_file"])
     return ServiceConfig(
-        vehicle=VehicleConfig(**read("vehicle")),
+        vehicle=VehicleConfig(**vehicle),
         camera=CameraConfig(**camera),
         detector=DetectorConfig(**read("detector")),
         pose=PoseConfig(**read("pose")),

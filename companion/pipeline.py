@@ -2,10 +2,11 @@
 
 `Pipeline.step(image, pose)` runs one estimator step on a frame: detect tags, project them to
 the ground in UTM, take the footprint this frame covered as the sensing region, and step the
-GM-PHD. A blank frame (lens cap, black picture) or a camera too near the ground makes the step
-blind. `Pipeline.blind(t_s)` steps with no frame (camera down, no pose): it predicts but does
-not apply a no-detection update, because not seeing is not seeing nothing. It is synchronous and
-reads no clock: time comes with the pose.
+GM-PHD. A blank frame (lens cap, black picture), a frozen frame (the same picture as the step
+before, bit for bit: a real sensor's noise never repeats) or a camera too near the ground makes
+the step blind. `Pipeline.blind(t_s)` steps with no frame (camera down, no pose): it predicts
+but does not apply a no-detection update, because not seeing is not seeing nothing. It is
+synchronous and reads no clock: time comes with the pose.
 
 The estimator works in a search frame: UTM metres shifted so that the search area's bounding box
 starts at (0, 0). That frame is UTM up to a constant, and the planners' World is that box.
@@ -13,6 +14,7 @@ starts at (0, 0). That frame is UTM up to a constant, and the planners' World is
 
 from __future__ import annotations
 
+import hashlib
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -158,6 +160,7 @@ class Pipeline:
                                           p.attitude_std_deg, p.heading_std_deg)
         self._last_boot_s: float | None = None
         self._time_offset_s = 0.0
+        self._last_image_digest = b""
 
     # -- time --------------------------------------------------------------------------------
 
@@ -179,6 +182,27 @@ class Pipeline:
             self.state = initial_state(Mixture.empty(dim), t_s, self.params)
         return self.state
 
+    # -- checkpoints -------------------------------------------------------------------------
+
+    def checkpoint(self) -> dict[str, Any]:
+        """What `restore` needs to carry on: the estimator's state, its clock, the area."""
+        return {"state": self.state, "last_boot_s": self._last_boot_s,
+                "time_offset_s": self._time_offset_s,
+                "area_latlon": np.asarray(self.config.search.area_latlon).tolist()}
+
+    def restore(self, saved: dict[str, Any]) -> bool:
+        """Carry on from a checkpoint of the same search area; False (and nothing changed) if
+        it is of another area or not a checkpoint of this pipeline."""
+        state = saved.get("state")
+        same_area = np.array_equal(np.asarray(saved.get("area_latlon"), dtype=np.float64),
+                                   np.asarray(self.config.search.area_latlon))
+        if not same_area or not isinstance(state, SatState):
+            return False
+        self.state = state
+        self._last_boot_s = saved.get("last_boot_s")
+        self._time_offset_s = float(saved.get("time_offset_s", 0.0))
+        return True
+
     # -- steps -------------------------------------------------------------------------------
 
     def step(self, image: NDArray[np.uint8], pose: GeoPose) -> StepRecord:
@@ -187,6 +211,10 @@ class Pipeline:
             return self.blind(pose.t_s, "on the ground")
         if float(np.std(image[::4, ::4])) < BLANK_FRAME_STD:
             return self.blind(pose.t_s, "blank frame")
+        digest = hashlib.blake2b(np.ascontiguousarray(image).data, digest_size=16).digest()
+        frozen, self._last_image_digest = digest == self._last_image_digest, digest
+        if frozen:
+            return self.blind(pose.t_s, "frozen frame")
         det = self.config.detector
         _, pixels = detect_centres(self.detector, image, det.min_decision_margin,
                                    det.allowed_ids)

@@ -49,12 +49,16 @@ from companion.plan.planners import (
     lawnmower_path,
     move_towards,
 )
+from companion.record.checkpoint import latest_checkpoint, save_checkpoint
 from companion.record.frames import FrameRecorder
 from companion.record.rotation import make_room
 from companion.record.tlog import TlogWriter
 from companion.report import TrackRecord, confirmed_tracks, write_csv, write_geojson
 from companion.sim.plots import plot_flight
 from companion.vehicle.mavsdk_link import FlightMode, MavsdkLink, VehicleError
+from companion.vehicle.plausibility import PositionGate
+from companion.vehicle.pose_buffer import GeoPoseSample
+from companion.vehicle.signing import SigningRelay, load_signing_key
 from companion.vehicle.view import VehicleView
 from companion.vision.camera import CameraModel
 from companion.vision.projection import GeoPose
@@ -62,11 +66,16 @@ from companion.vision.projection import GeoPose
 __all__ = ["RunResult", "Service", "camera_model"]
 
 FloatArray = NDArray[np.float64]
-TELEMETRY_STALE_S = 2.0  # no telemetry for this long: the link is down
+TELEMETRY_STALE_S = 0.8  # no telemetry (20 attitudes a second) for this long: the link is down
 BATTERY_LOW_PERCENT = 20.0
 REACHED_M = 1.5  # the vehicle is this close to a waypoint: the planner moves on
 STREAM_SETTLE_S = 0.5  # PX4 accepts OFFBOARD only after setpoints have streamed (> 2 Hz)
 ESTIMATOR_STOP_S = 2.0  # wall time the step under way may take to end when the mission stops
+STALL_TICKS = 3  # the control loop ran this many periods late: this process stalled
+POSE_WAIT_S = 1.5  # a frame may wait this long for the telemetry of its capture time
+POSE_POLL_S = 0.02
+CHECKPOINT_EVERY_S = 5.0  # estimator time between checkpoints
+RESUME_WITHIN_S = 600.0  # a restarted service carries on from a checkpoint younger than this
 
 _MODES = {
     FlightMode.OFFBOARD: ms.FlightMode.OFFBOARD, FlightMode.HOLD: ms.FlightMode.HOLD,
@@ -128,7 +137,9 @@ class Service:
         self.clock = clock
         self.announce = announce
         self.pipeline = Pipeline(config, self.camera)
-        self.view = VehicleView(clock, config.pose.max_gap_s)
+        self.view = VehicleView(clock, config.pose.max_gap_s, PositionGate(
+            config.pose.glitch_gate_m, config.pose.glitch_accept_after_s))
+        self._glitch_reported = False
         self.counters = {"steps": 0, "blind_steps": 0, "frames_used": 0, "setpoints": 0,
                          "setpoints_clamped": 0, "setpoints_refused": 0, "command_errors": 0}
         self.mission = ms.Mission(self._mission_config())
@@ -145,6 +156,7 @@ class Service:
         self._last_watchdog_wall_s = -math.inf
         self._ready_sent = False
         self._frames: FrameRecorder | None = None
+        self._checkpoint_due_s = -math.inf
 
     # -- configuration -----------------------------------------------------------------------
 
@@ -177,6 +189,7 @@ class Service:
                                  min_free_bytes=int(o.min_free_mb * 1e6), keep=[out],
                                  log=self._log):
             self._event("run_removed", path=str(removed.path), bytes=removed.bytes)
+        self._resume(out)
         steps = _JsonLines(out / "steps.jsonl")
         tlog = TlogWriter(out / "flight.tlog")
         if o.frames != "off":
@@ -207,13 +220,20 @@ class Service:
 
     async def _fly(self, stop: asyncio.Event, steps: _JsonLines, tlog: TlogWriter) -> None:
         c, v = self.config.camera, self.config.vehicle
-        grabber = LatestFrameGrabber(open_source(c.source, c.kind), self.clock).start()
+        source = open_source(c.source, c.kind)
+        grabber = LatestFrameGrabber(source, self.clock).start()
 
         def record(system_id: int, component_id: int, name: str, fields: dict[str, Any]) -> None:
             tlog.write(time.time(), system_id, component_id, name, fields)
 
+        relay = None
         try:
-            async with MavsdkLink.connect(v.connection, v.connect_timeout_s,
+            url = v.connection
+            if v.signing_key_file is not None:  # MAVSDK cannot sign: a relay signs for it
+                relay = SigningRelay(v.connection, load_signing_key(Path(v.signing_key_file)))
+                url = relay.start()
+                self._event("signing_relay", url=url, vehicle=v.connection)
+            async with MavsdkLink.connect(url, v.connect_timeout_s,
                                           v.telemetry_rate_hz) as link:
                 self._event("connected", url=v.connection)
                 try:
@@ -229,10 +249,18 @@ class Service:
                             task.cancel()
                 except ExceptionGroup as failed:  # a task died: report its own error
                     raise failed.exceptions[0] from failed
+                finally:
+                    self.counters["telemetry_malformed"] = link.malformed
         finally:
+            if relay is not None:
+                relay.stop()
+                self.counters.update({f"signing_{name}": n for name, n in
+                                      dataclasses.asdict(relay.counters).items()})
             grabber.stop()
             self.counters["frames_dropped"] = grabber.dropped
             self.counters["frame_errors"] = grabber.errors
+            self.counters["frames_corrupt"] = getattr(source, "corrupt_frames", 0)
+            self.counters.update({f"rejected_{k}": v for k, v in self.view.rejected.items()})
 
     def _snapshot(self, out: Path) -> None:
         """What replay needs besides the steps: the configuration and the camera model."""
@@ -240,6 +268,26 @@ class Service:
         camera = {f.name: getattr(self.camera, f.name) for f in dataclasses.fields(self.camera)}
         (out / "camera.json").write_text(json.dumps(camera, indent=1))
         (out / "version.txt").write_text(f"companion {version('companion')}\n")
+
+    def _resume(self, out: Path) -> None:
+        """After a restart (a run stopped a short while ago): carry on its estimate, and take no
+        automatic step (arm, take-off, offboard): the pilot selects OFFBOARD to resume."""
+        found = latest_checkpoint(Path(self.config.output.dir), exclude=out,
+                                  max_age_s=RESUME_WITHIN_S, now_wall_s=time.time(), log=self._log)
+        if found is None:
+            return
+        path, data = found
+        # A restart: whoever flies the vehicle now decides when the search goes on.
+        self.mission = dataclasses.replace(self.mission, auto_arm_spent=True,
+                                           auto_offboard_spent=True)
+        if not self.pipeline.restore(data):
+            self._log(f"checkpoint {path} is of another search area: not resumed")
+            return
+        state = self.pipeline.state
+        confirmed = 0 if state is None else int(state.tracks.confirmed.sum())
+        self._log(f"resumed the estimate of {path.parent.name}: {confirmed} confirmed tracks; "
+                  "no automatic arm, take-off or offboard after a restart")
+        self._event("resumed", checkpoint=str(path), confirmed=confirmed)
 
     def _event(self, event: str, **fields: Any) -> None:
         if self._events is not None:
@@ -267,13 +315,23 @@ class Service:
             next_s = max(next_s + period_s, self.clock())
             frame = await loop.run_in_executor(None, grabber.get,
                                                0.5 * period_s / self.time_scale)
-            record = await self._estimator_step(frame, loop)
+            try:
+                record = await self._estimator_step(frame, loop)
+            except CompanionError as exc:  # unusable input: a blind step, and fly on
+                boot_s = self.view.boot_time_now()
+                self._event("step_error", error=str(exc))
+                record = None if boot_s is None else self.pipeline.blind(boot_s, "bad input")
             if record is None:
                 continue
             self._last_step_wall_s = time.monotonic()
             self.counters["steps"] += 1
             self.counters["blind_steps"] += record.blind is not None
             steps.write(record.to_json(self.pipeline.frame))
+            state = self.pipeline.state
+            if state is not None and state.t_s >= self._checkpoint_due_s:  # off the event loop
+                self._checkpoint_due_s = state.t_s + CHECKPOINT_EVERY_S
+                await loop.run_in_executor(None, save_checkpoint, steps.path.parent,
+                                           self.pipeline.checkpoint())
 
     async def _estimator_step(self, frame: Frame | None,
                               loop: asyncio.AbstractEventLoop) -> StepRecord | None:
@@ -286,11 +344,13 @@ class Service:
         if capture_s is None:  # a camera that knows no boot time: map its receive time
             capture_s = (frame.receive_time_s + (boot_now_s - self.clock())
                          - self.config.camera.latency_s)
-        sample = self.view.poses.at(capture_s)
+        sample = await self._pose_at(capture_s)
         if sample is None:
-            return self.pipeline.blind(capture_s, "no pose at the capture time")
+            glitch = self.view.gate.refusing_since_s is not None
+            return self.pipeline.blind(capture_s, "implausible position (GPS glitch?)" if glitch
+                                       else "no pose at the capture time")
         pose = GeoPose(capture_s, sample.lat_deg, sample.lon_deg, sample.alt_amsl_m,
-                       sample.alt_rel_m, sample.q_wxyz)
+                       max(sample.alt_rel_m, 0.0), sample.q_wxyz)  # on the ground: noise < 0
         started = time.perf_counter()
         record = await loop.run_in_executor(None, self.pipeline.step, frame.image, pose)
         self.counters["frames_used"] += record.blind is None
@@ -301,6 +361,18 @@ class Service:
             if kept is not None:
                 record.extra["input"]["frame"] = kept
         return record
+
+    async def _pose_at(self, capture_s: float) -> GeoPoseSample | None:
+        """The pose at a frame's capture time, waiting up to POSE_WAIT_S for telemetry that has
+        not arrived yet (a slow link delivers it after the frame)."""
+        deadline_s = self.clock() + POSE_WAIT_S
+        while True:
+            sample = self.view.poses.at(capture_s)
+            latest_s = self.view.latest_boot_s
+            if (sample is not None or latest_s is None or latest_s >= capture_s
+                    or self.clock() >= deadline_s):
+                return sample
+            await asyncio.sleep(POSE_POLL_S / self.time_scale)
 
     # -- control -----------------------------------------------------------------------------
 
@@ -331,21 +403,36 @@ class Service:
     async def _control(self, link: MavsdkLink, stop: asyncio.Event) -> None:
         period_s = 1.0 / self.config.mission.setpoint_rate_hz
         final = (ms.State.DONE, ms.State.FAILSAFE)
+        last_tick_s = self.clock()
         while not stop.is_set():
+            now_s = self.clock()
+            # After a stall of this process (a loaded computer) the telemetry that came in
+            # meanwhile is still queued: judge the link one tick later, not now.
+            stalled, last_tick_s = now_s - last_tick_s > STALL_TICKS * period_s, now_s
             inputs = self._inputs()
             before = self.mission.state
-            self.mission, commands = ms.advance(self.mission, inputs, self.clock())
-            self._tell_systemd(inputs, before)
-            for command in commands:
-                await self._execute(link, command)
+            if not stalled:
+                self.mission, commands = ms.advance(self.mission, inputs, now_s)
+                self._tell_systemd(inputs, before)
+                for command in commands:
+                    await self._execute(link, command)
             if self._stream is not None:
                 await self._send_setpoint(link, period_s)
             await self._announce_targets(link)
+            self._report_glitch()
             st = self.view.status
             if self.mission.state in final and st is not None and not st.armed:
                 return  # landed and disarmed after the end
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), period_s / self.time_scale)
+
+    def _report_glitch(self) -> None:
+        """A line when positions start being refused as implausible, and when they stop."""
+        refusing = self.view.gate.refusing_since_s is not None
+        if refusing != self._glitch_reported:
+            self._glitch_reported = refusing
+            self._log("position: implausible jump (GPS glitch?): positions refused, frames blind"
+                      if refusing else "position: plausible again")
 
     def _tell_systemd(self, inputs: ms.MissionInputs, before: ms.State) -> None:
         """READY once connected, STATUS on every state change, WATCHDOG while the pipeline runs."""

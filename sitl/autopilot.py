@@ -8,6 +8,14 @@ stream that stops for COM_OF_LOSS_T leaves OFFBOARD to the configured failsafe. 
 flavour uses Copter's mode numbers, GUIDED for offboard, streams nothing until asked, reports
 local NED about its EKF origin, and refuses to arm in modes that forbid it.
 
+With `AutopilotConfig.signing_key` set it enforces MAVLink 2 signing as a real autopilot with a
+key does: it signs everything it sends (link id 0, wall-clock timestamps) and drops, before
+handling, every received frame that is unsigned or whose signature is wrong, replayed or too old
+(pymavlink's check, in the C library's order: see companion.vehicle.signing.check_signature),
+except the flavour's unsigned allow-list: PX4 accepts HEARTBEAT, RADIO_STATUS, ADSB_VEHICLE and
+COLLISION, ArduPilot RADIO_STATUS and RADIO (and anything on its USB port, not modelled: this
+link is UDP). Drops are counted in `Snapshot.rejected_unsigned` / `rejected_bad_signature`.
+
 One thread runs the loop (receive, simulate, send); the operator's actions and the faults are
 methods that tests call from other threads.
 """
@@ -25,6 +33,7 @@ from numpy.typing import NDArray
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.geo import LocalNed
+from companion.vehicle.signing import Signature, check_signature, new_signer
 from sitl.clock import SimClock
 from sitl.link import UdpLink
 from sitl.modes import COPTER_ARMABLE, PX4_ARMABLE, Behaviour, Flavour, decode, encode
@@ -93,6 +102,16 @@ SENDABLE = frozenset({
     mavlink.MAVLINK_MSG_ID_HEARTBEAT, mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION,
     mavlink.MAVLINK_MSG_ID_VFR_HUD, *PX4_RATES_HZ,
 })  # what _send_message can send
+# What a signing autopilot still accepts unsigned (PX4 docs/en/mavlink/message_signing.md of 2026;
+# ArduPilot libraries/GCS_MAVLink/GCS_Signing.cpp accept_list).
+UNSIGNED_ACCEPTED: dict[Flavour, frozenset[int]] = {
+    Flavour.PX4: frozenset({
+        mavlink.MAVLINK_MSG_ID_HEARTBEAT, mavlink.MAVLINK_MSG_ID_RADIO_STATUS,
+        mavlink.MAVLINK_MSG_ID_ADSB_VEHICLE, mavlink.MAVLINK_MSG_ID_COLLISION,
+    }),
+    Flavour.ARDUPILOT: frozenset({mavlink.MAVLINK_MSG_ID_RADIO_STATUS,
+                                  mavlink.MAVLINK_MSG_ID_RADIO}),
+}
 TYPEMASK_POSITION = 0b111  # bits set: ignore x, y, z
 TYPEMASK_VELOCITY = 0b111000
 TYPEMASK_YAW = 1 << 10
@@ -120,6 +139,7 @@ class AutopilotConfig:
     limits: VehicleLimits = field(default_factory=VehicleLimits)
     physics_dt_s: float = 0.02
     seed: int = 0
+    signing_key: bytes | None = None  # 32 bytes: sign everything, reject unsigned frames
 
 
 @dataclass(frozen=True, slots=True)
@@ -136,6 +156,8 @@ class Snapshot:
     online: bool  # False while rebooting: silent, no time base
     last_setpoint_clock_s: float  # SITL clock time of the last setpoint received (-inf: none)
     setpoints_streaming: bool  # fast enough for OFFBOARD to be accepted now
+    rejected_unsigned: int = 0  # signing on: unsigned frames dropped (all boots)
+    rejected_bad_signature: int = 0  # signing on: wrong key, replayed or too old (all boots)
 
 
 @dataclass
@@ -164,6 +186,8 @@ class MockAutopilot:
         self.statustexts: list[str] = []
         self.texts_received: list[tuple[int, int, str]] = []  # (component, severity, text)
         self._last_setpoint_clock_s = -math.inf
+        self._rejected_unsigned = 0
+        self._rejected_bad_signature = 0
         self._reset(0.0)
 
     # -- lifecycle ----------------------------------------------------------------------------
@@ -172,6 +196,11 @@ class MockAutopilot:
         cfg = self.config
         self._mav = mavlink.MAVLink(None, srcSystem=cfg.system_id, srcComponent=cfg.component_id)
         self._mav.robust_parsing = True
+        self._rx = self._mav  # what parses received bytes
+        if cfg.signing_key is not None:  # a reboot forgets the streams (RAM), as the C library
+            self._mav = new_signer(cfg.signing_key, cfg.system_id, cfg.component_id)
+            self._rx = mavlink.MAVLink(None)  # no key: the check is _signature_ok's
+            self._rx.robust_parsing = True
         self._boot_wall_s = now_s
         self._t_s = 0.0
         self._vehicle = VehicleState.at_rest(
@@ -236,7 +265,9 @@ class MockAutopilot:
             return Snapshot(self._t_s, self._boot, self._behaviour, self._armed, self._vehicle,
                             self._battery_percent(), self._boot_wall_s + self._t_s,
                             self._reboot_until_s < 0.0, self._last_setpoint_clock_s,
-                            self._setpoints_streaming())
+                            self._setpoints_streaming(),
+                            rejected_unsigned=self._rejected_unsigned,
+                            rejected_bad_signature=self._rejected_bad_signature)
 
     # -- the operator and the faults ----------------------------------------------------------
 
@@ -290,8 +321,9 @@ class MockAutopilot:
             packets = self.link.receive(now, wait_wall_s=0.002)
             with self._lock:
                 for data, _ in packets:
-                    for msg in self._mav.parse_buffer(data) or []:
-                        self._handle(msg)
+                    for msg in self._rx.parse_buffer(data) or []:
+                        if self._signature_ok(msg):
+                            self._handle(msg)
                 self._simulate(now - self._boot_wall_s)
                 self._send_due()
 
@@ -432,6 +464,21 @@ class MockAutopilot:
         return float(np.clip(100.0 * (1.0 - used), 0.0, 100.0))
 
     # -- incoming messages --------------------------------------------------------------------
+
+    def _signature_ok(self, msg: mavlink.MAVLink_message) -> bool:
+        """Signing off, a valid signature, or an allow-listed message; else counted and False."""
+        if self.config.signing_key is None or isinstance(msg, mavlink.MAVLink_bad_data):
+            return True  # bad data matches nothing in _handle
+        verdict = check_signature(self._mav, msg.get_msgbuf())
+        if verdict is Signature.VALID:
+            return True
+        if msg.get_msgId() in UNSIGNED_ACCEPTED[self.config.flavour]:
+            return True  # as the C library's accept_unsigned callback: unsigned or invalid
+        if verdict is Signature.UNSIGNED:
+            self._rejected_unsigned += 1
+        else:
+            self._rejected_bad_signature += 1
+        return False
 
     def _handle(self, msg: mavlink.MAVLink_message) -> None:
         kind = msg.get_type()

@@ -8,6 +8,7 @@ serves it as MJPEG over HTTP, each frame stamped with the autopilot's boot time 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 from dataclasses import dataclass
@@ -85,6 +86,7 @@ class Sitl:
         mavlink_port: int = PX4_OFFBOARD_PORT,
         gcs_port: int | None = None,
         camera_port: int = 0,
+        signing_key: bytes | None = None,
     ) -> None:
         self.scenario = scenario
         self.faults = faults or FaultPlan()
@@ -96,8 +98,10 @@ class Sitl:
         link.faults.loss_in = self.faults.loss_to_autopilot
         link.faults.loss_out = self.faults.loss_from_autopilot
         link.faults.latency_s = self.faults.latency_s
-        self.autopilot = MockAutopilot(autopilot_config(scenario), link, self.clock,
-                                       scenario.geo.local_ned())
+        config = autopilot_config(scenario)
+        if signing_key is not None:  # the autopilot signs and rejects unsigned frames
+            config = dataclasses.replace(config, signing_key=signing_key)
+        self.autopilot = MockAutopilot(config, link, self.clock, scenario.geo.local_ned())
         self.renderer = Renderer(scenario.camera, texture_seed=scenario.seed)
         self.stream = MjpegServer(host, camera_port)
         self.frames = FrameCounts()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import re
 import shutil
 import socket
 import subprocess
@@ -20,6 +21,7 @@ from sitl.cli import sitl_scenarios
 from sitl.demo import service_config
 from sitl.link import free_udp_port
 from sitl.runner import Sitl
+from tests.figures import record_figure
 
 ROOT = Path(__file__).resolve().parent.parent
 UNIT = ROOT / "systemd" / "companion.service"
@@ -42,6 +44,21 @@ def test_the_unit_file_verifies(tmp_path: Path) -> None:
     done = subprocess.run([analyze, "verify", str(unit)], capture_output=True, text=True,
                           timeout=60, check=False)
     assert done.returncode == 0 and not done.stderr.strip(), done.stderr
+
+
+def test_the_unit_is_hardened_below_an_exposure_of_4(tmp_path: Path) -> None:
+    """`systemd-analyze security` scores the unit's sandboxing: 0 (locked down) to 10."""
+    analyze = shutil.which("systemd-analyze")
+    assert analyze, "systemd-analyze is needed (Debian package systemd; make test installs it)"
+    unit = tmp_path / "companion.service"
+    unit.write_text(UNIT.read_text())
+    done = subprocess.run([analyze, "security", "--offline=yes", "--no-pager", str(unit)],
+                          capture_output=True, text=True, timeout=60, check=False)
+    found = re.search(r"Overall exposure level for companion\.service: (\d+\.\d+)", done.stdout)
+    assert found, done.stdout[-500:] + done.stderr
+    exposure = float(found.group(1))
+    assert exposure < 4.0
+    record_figure("systemd-security", exposure=exposure)
 
 
 class StalledDetector:

@@ -48,8 +48,8 @@ class Recorder:
         self.changed = asyncio.Event()
 
     def on_position(self, t_s: float, lat_deg: float, lon_deg: float, alt_amsl_m: float,
-                    alt_rel_m: float) -> None:
-        self.positions.append((t_s, lat_deg, lon_deg, alt_amsl_m, alt_rel_m))
+                    alt_rel_m: float, vel_ne_m_s: tuple[float, float] = (0.0, 0.0)) -> None:
+        self.positions.append((t_s, lat_deg, lon_deg, alt_amsl_m, alt_rel_m, *vel_ne_m_s))
         self.changed.set()
 
     def on_local_position(self, t_s: float, north_m: float, east_m: float,

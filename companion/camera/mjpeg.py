@@ -180,6 +180,10 @@ def _capture_time_s(headers: dict[str, str]) -> float:
 
 
 def _decode(body: bytes) -> NDArray[np.uint8] | None:
+    """The image of a whole JPEG; None for a broken one (no end-of-image marker: cut short or
+    garbled, which OpenCV would still half-decode into a picture of noise)."""
+    if not body.rstrip(b"\x00\r\n").endswith(b"\xff\xd9"):
+        return None
     image = cv2.imdecode(np.frombuffer(body, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if image is None:
         return None

@@ -63,7 +63,7 @@ class TelemetrySink(Protocol):
     """Where `MavsdkLink.run_telemetry` delivers what it reads (called on the event loop)."""
 
     def on_position(self, t_s: float, lat_deg: float, lon_deg: float, alt_amsl_m: float,
-                    alt_rel_m: float) -> None: ...
+                    alt_rel_m: float, vel_ne_m_s: tuple[float, float] = (0.0, 0.0)) -> None: ...
 
     def on_local_position(self, t_s: float, north_m: float, east_m: float,
                           down_m: float) -> None: ...
@@ -99,6 +99,7 @@ class MavsdkLink:
         self.offboard = OffboardAsync(system)
         self.direct = MavlinkDirectAsync(system)
         self._status = Status(FlightMode.UNKNOWN, False, False, False, False, math.nan)
+        self.malformed = 0  # telemetry messages whose fields could not be read
 
     @classmethod
     @contextlib.asynccontextmanager
@@ -141,7 +142,7 @@ class MavsdkLink:
         async with asyncio.TaskGroup() as group:
             group.create_task(self._messages("GLOBAL_POSITION_INT", lambda f: sink.on_position(
                 f["time_boot_ms"] / 1e3, f["lat"] / 1e7, f["lon"] / 1e7, f["alt"] / 1e3,
-                f["relative_alt"] / 1e3)))
+                f["relative_alt"] / 1e3, (f["vx"] / 100.0, f["vy"] / 100.0))))
             group.create_task(self._messages("LOCAL_POSITION_NED", lambda f: sink.on_local_position(
                 f["time_boot_ms"] / 1e3, f["x"], f["y"], f["z"])))
             group.create_task(self._messages("ATTITUDE_QUATERNION", lambda f: sink.on_attitude(
@@ -161,7 +162,10 @@ class MavsdkLink:
             async for message in messages:
                 if message.component_id != 1:
                     continue  # only the autopilot's own estimate
-                deliver(_fields(message))
+                try:
+                    deliver(_fields(message))
+                except (KeyError, TypeError, ValueError, ArithmeticError):  # malformed fields
+                    self.malformed += 1
 
     async def _status_updates(self, sink: TelemetrySink) -> None:
         def update(**changes: Any) -> None:

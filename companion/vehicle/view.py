@@ -8,6 +8,9 @@ receive clock is passed in), so replay can drive it from a log.
 - The boot clock: boot time = receive time + offset, where the offset is the largest seen in the
   last samples. That makes it the least delayed sample, so a frame from a camera that knows no
   boot time can be stamped.
+- Bad samples never get in: non-finite or out-of-range values (latitude 200, a quaternion that
+  is not a rotation) are refused and counted in `rejected`, and so are positions that a
+  `PositionGate` finds implausible (a GPS glitch). Frames taken then have no pose.
 """
 
 from __future__ import annotations
@@ -18,8 +21,10 @@ from collections.abc import Callable
 
 import numpy as np
 
+from companion.errors import InputError
 from companion.geo import LocalNed
 from companion.vehicle.mavsdk_link import Status
+from companion.vehicle.plausibility import PositionGate
 from companion.vehicle.pose_buffer import PoseBuffer
 
 __all__ = ["VehicleView"]
@@ -32,9 +37,12 @@ PAIR_TOLERANCE_S = 0.02
 class VehicleView:
     """Telemetry in, the vehicle's pose, local origin, clock and status out."""
 
-    def __init__(self, receive_clock: Callable[[], float], max_gap_s: float = 0.5) -> None:
+    def __init__(self, receive_clock: Callable[[], float], max_gap_s: float = 0.5,
+                 gate: PositionGate | None = None) -> None:
         self._clock = receive_clock
         self.poses = PoseBuffer(max_gap_s=max_gap_s)
+        self.gate = gate or PositionGate()
+        self.rejected = {"position": 0, "local_position": 0, "attitude": 0, "implausible": 0}
         self.status: Status | None = None
         self.local_ned_m: tuple[float, float, float] | None = None
         self.latest_boot_s: float | None = None
@@ -51,16 +59,24 @@ class VehicleView:
             self._origins.clear()
             self._offsets.clear()
             self._locals.clear()
+            self.gate.reset()
             self.latest_boot_s = None
         self.latest_boot_s = t_s if self.latest_boot_s is None else max(self.latest_boot_s, t_s)
         self._offsets.append(t_s - self._clock())
 
     def on_position(self, t_s: float, lat_deg: float, lon_deg: float, alt_amsl_m: float,
-                    alt_rel_m: float) -> None:
-        """A GLOBAL_POSITION_INT."""
-        if not all(map(math.isfinite, (t_s, lat_deg, lon_deg, alt_amsl_m, alt_rel_m))):
+                    alt_rel_m: float, vel_ne_m_s: tuple[float, float] = (0.0, 0.0)) -> None:
+        """A GLOBAL_POSITION_INT (vel_ne_m_s: its north and east velocity)."""
+        if not (all(map(math.isfinite, (t_s, lat_deg, lon_deg, alt_amsl_m, alt_rel_m,
+                                         *vel_ne_m_s)))
+                and abs(lat_deg) <= 90.0 and abs(lon_deg) <= 180.0
+                and (lat_deg, lon_deg) != (0.0, 0.0) and t_s >= 0.0):
+            self.rejected["position"] += 1
             return
         self._stamp(t_s)
+        if not self.gate.check(t_s, lat_deg, lon_deg, vel_ne_m_s):
+            self.rejected["implausible"] += 1
+            return
         self.poses.add_position(t_s, lat_deg, lon_deg, alt_amsl_m, alt_rel_m)
         self.home_amsl_m = alt_amsl_m - alt_rel_m
         for local in self._locals:
@@ -71,7 +87,8 @@ class VehicleView:
     def on_local_position(self, t_s: float, north_m: float, east_m: float,
                           down_m: float) -> None:
         """A LOCAL_POSITION_NED (about the autopilot's local origin)."""
-        if not all(map(math.isfinite, (t_s, north_m, east_m, down_m))):
+        if not all(map(math.isfinite, (t_s, north_m, east_m, down_m))) or t_s < 0.0:
+            self.rejected["local_position"] += 1
             return
         self._stamp(t_s)
         self.local_ned_m = (north_m, east_m, down_m)
@@ -83,10 +100,15 @@ class VehicleView:
 
     def on_attitude(self, t_s: float, q_wxyz: tuple[float, float, float, float]) -> None:
         """An ATTITUDE_QUATERNION."""
-        if not all(map(math.isfinite, (t_s, *q_wxyz))):
+        if not all(map(math.isfinite, (t_s, *q_wxyz))) or t_s < 0.0:
+            self.rejected["attitude"] += 1
+            return
+        try:
+            self.poses.add_attitude(t_s, q_wxyz)
+        except InputError:  # not a unit quaternion
+            self.rejected["attitude"] += 1
             return
         self._stamp(t_s)
-        self.poses.add_attitude(t_s, q_wxyz)
 
     def on_status(self, status: Status) -> None:
         """Mode, armed, health, battery."""
