@@ -6,7 +6,10 @@ vehicle to the autopilot and the service waits; a low battery hands over to the 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
+import os
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -202,3 +205,48 @@ def test_a_key_file_others_can_read_stops_the_start(tmp_path: Path) -> None:
         assert done.returncode == 2, done.stderr
         assert done.stderr.startswith("companion: vehicle.signing_key_file: ")
         assert "Traceback" not in done.stderr
+
+
+def _bound_addresses() -> set[tuple[str, str, int]]:
+    """(protocol, local address, port) of every socket this process holds (from /proc)."""
+    inodes = set()
+    for fd in Path("/proc/self/fd").iterdir():
+        with contextlib.suppress(OSError):
+            target = os.readlink(fd)
+            if target.startswith("socket:["):
+                inodes.add(target[8:-1])
+    found = set()
+    for proto in ("tcp", "tcp6", "udp", "udp6"):
+        for line in Path(f"/proc/net/{proto}").read_text().splitlines()[1:]:
+            fields = line.split()
+            if fields[9] in inodes:
+                address, port = fields[1].split(":")
+                raw = bytes.fromhex(address)
+                if len(raw) == 4:
+                    text = socket.inet_ntop(socket.AF_INET, raw[::-1])
+                else:  # /proc prints IPv6 as four host-order 32-bit words
+                    words = b"".join(raw[i:i + 4][::-1] for i in range(0, 16, 4))
+                    text = socket.inet_ntop(socket.AF_INET6, words)
+                found.add((proto, text, int(port, 16)))
+    return found
+
+
+def test_nothing_listens_beyond_loopback(tmp_path: Path) -> None:
+    """While the service flies (with the SITL in this process), every socket is on loopback."""
+    seen: set[tuple[str, str, int]] = set()
+
+    async def main() -> DemoResult:
+        scenario = load_scenario(sitl_scenarios()["field-5-tags"])
+        flight = asyncio.create_task(fly(scenario, speedup=SPEEDUP, out_dir=tmp_path,
+                                         stop_after_s=40.0))
+        while not flight.done():
+            seen.update(_bound_addresses())
+            await asyncio.wait([flight], timeout=0.5)
+        return flight.result()
+
+    result = asyncio.run(main())
+    assert result.run.counters["steps"] > 10 and len(seen) >= 3
+    outside = {s for s in seen if s[1] not in ("127.0.0.1", "::1", "::ffff:127.0.0.1")
+               and not (s[1] in ("0.0.0.0", "::") and s[2] == 0)}  # unbound: not listening
+    assert not outside, outside
+    record_figure("no-listening-ports", sockets_seen=len(seen), outside_loopback=len(outside))
