@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import json
 import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -391,9 +392,20 @@ def parse_config(data: Mapping[str, Any], base: Path | None = None) -> ServiceCo
 
 
 def load_config(path: str | Path) -> ServiceConfig:
-    """The configuration in a TOML file; ConfigError names the file or the bad key."""
+    """The configuration in a TOML file, or the same tables as JSON (a run folder's
+    config.json); ConfigError names the file or the bad key."""
     p = Path(path)
-    return parse_config(load_toml(p, "configuration"), base=p.parent)
+    if p.suffix.lower() != ".json":
+        return parse_config(load_toml(p, "configuration"), base=p.parent)
+    try:
+        data = json.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError as exc:
+        raise ConfigError(str(p), "no such configuration file") from exc
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ConfigError(str(p), f"not a JSON configuration: {exc}") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(str(p), "not a JSON configuration: not an object of tables")
+    return parse_config(data, base=p.parent)
 
 
 def schema_markdown() -> str:

@@ -9,18 +9,23 @@ import asyncio
 import contextlib
 import json
 import os
+import pickle
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from companion.replay import replay_run
 from companion.sim.scenario import load_scenario
 from sitl.cli import sitl_scenarios
-from sitl.demo import DemoResult, fly
+from sitl.demo import DemoResult, fly, service_config
+from sitl.link import free_udp_port
 from sitl.modes import Behaviour
+from sitl.runner import Sitl
 from tests.figures import record_figure
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -250,3 +255,76 @@ def test_nothing_listens_beyond_loopback(tmp_path: Path) -> None:
                and not (s[1] in ("0.0.0.0", "::") and s[2] == 0)}  # unbound: not listening
     assert not outside, outside
     record_figure("no-listening-ports", sockets_seen=len(seen), outside_loopback=len(outside))
+
+
+def _wait_for(condition: Any, timeout_s: float, what: str) -> None:
+    """Poll condition() until it is true; fail naming what was awaited."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.2)
+
+
+def _events_of(run_dir: Path) -> list[dict[str, Any]]:
+    path = run_dir / "events.jsonl"
+    if not path.is_file():
+        return []
+    lines = path.read_text().splitlines()
+    return [json.loads(line) for line in lines[:-1]] + (
+        [json.loads(lines[-1])] if lines and lines[-1].endswith("}") else [])
+
+
+def test_a_killed_service_restarts_without_taking_control_and_resumes_its_estimate(
+        tmp_path: Path) -> None:
+    """`kill -9` mid-flight, as systemd then restarts it: the killed run replays, the new
+    process takes no automatic step, and it carries on from the estimator's checkpoint."""
+    scenario = load_scenario(sitl_scenarios()["field-5-tags"])
+    runs = tmp_path / "runs"
+    with Sitl(scenario, speedup=1.0, mavlink_port=free_udp_port()) as sitl:
+        config = tmp_path / "config.json"
+        config.write_text(json.dumps(service_config(scenario, sitl, runs).data))
+        command = [sys.executable, "-m", "companion", "run", "--config", str(config)]
+        first = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            def a_confirmed_track_is_saved() -> bool:
+                folders = sorted(runs.glob("run-*"))
+                try:
+                    with (folders[0] / "checkpoint.pkl").open("rb") as fh:
+                        state = pickle.load(fh)["state"]
+                except (IndexError, OSError, EOFError, pickle.UnpicklingError, KeyError):
+                    return False  # not written yet, or being replaced
+                return state is not None and int(state.tracks.confirmed.sum()) >= 1
+            _wait_for(a_confirmed_track_is_saved, 120.0, "a confirmed track in a checkpoint")
+        finally:
+            first.kill()
+            first.wait(timeout=30)
+        killed = sorted(runs.glob("run-*"))[0]
+        _wait_for(lambda: sitl.autopilot.snapshot().behaviour is Behaviour.HOLD, 10.0,
+                  "the autopilot's offboard-loss failsafe")
+        second = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                  text=True)
+        try:
+            def resumed_and_ready() -> bool:
+                folders = sorted(runs.glob("run-*"))
+                return len(folders) == 2 and any(
+                    e.get("text") == "healthy: ready, waiting for offboard"
+                    for e in _events_of(folders[1]))
+            _wait_for(resumed_and_ready, 60.0, "the restarted service to be ready")
+            restarted = sorted(runs.glob("run-*"))[1]
+            _wait_for(lambda: len((restarted / "steps.jsonl").read_text().splitlines()) > 10,
+                      30.0, "the restarted service's steps")
+        finally:
+            second.terminate()
+            _, errors = second.communicate(timeout=60)
+        snap = sitl.autopilot.snapshot()
+    assert second.returncode == 0, errors
+    events = _events_of(restarted)
+    resumed = [e for e in events if e["event"] == "resumed"]
+    assert resumed and resumed[0]["confirmed"] >= 1
+    assert not [e for e in events if e["event"] == "command" and e["kind"] in (
+        "arm", "takeoff", "start_offboard", "hold", "land", "rtl")]
+    assert snap.behaviour is Behaviour.HOLD and snap.armed  # nobody took the vehicle back
+    replayed = replay_run(killed, tmp_path / "replayed")  # the killed run's recording replays
+    assert replayed.steps > 20 and len(replayed.tracks) >= 1
+    record_figure("fault-kill-restart", resumed_confirmed=resumed[0]["confirmed"],
+                  killed_run_steps=replayed.steps, autopilot=snap.behaviour.value)
