@@ -86,11 +86,13 @@ class DemoResult:
 
 async def fly(scenario: Scenario, *, speedup: float, out_dir: Path, faults: str = "",
               announce: Any = None, stop_after_s: float | None = None,
-              signing_key: bytes | None = None, **overrides: dict[str, Any]) -> DemoResult:
+              signing_key: bytes | None = None, mavlink_port: int | None = None,
+              **overrides: dict[str, Any]) -> DemoResult:
     """One whole SITL mission flown by the service (stopped at stop_after_s simulated s); with
-    signing_key the autopilot accepts only signed MAVLink (configure the key file to match)."""
+    signing_key the autopilot accepts only signed MAVLink (configure the key file to match);
+    mavlink_port is where the service's MAVSDK listens (default: a free one)."""
     sitl = Sitl(scenario, speedup=speedup, faults=parse_faults(faults),
-                mavlink_port=free_udp_port(), signing_key=signing_key)
+                mavlink_port=mavlink_port or free_udp_port(), signing_key=signing_key)
     with sitl:
         config = service_config(scenario, sitl, out_dir, **overrides)
         service = Service(config, camera=scenario.camera, clock=sitl.clock.now_s,

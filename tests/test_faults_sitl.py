@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import math
 import os
 import pickle
 import socket
@@ -18,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from companion.replay import replay_run
 from companion.sim.scenario import load_scenario
@@ -328,3 +330,51 @@ def test_a_killed_service_restarts_without_taking_control_and_resumes_its_estima
     assert replayed.steps > 20 and len(replayed.tracks) >= 1
     record_figure("fault-kill-restart", resumed_confirmed=resumed[0]["confirmed"],
                   killed_run_steps=replayed.steps, autopilot=snap.behaviour.value)
+
+
+def test_junk_and_out_of_range_mavlink_is_refused_and_counted(tmp_path: Path) -> None:
+    """Random and truncated datagrams, and the autopilot's ids on a latitude of 200 and a NaN
+    attitude, sent to the service's MAVLink port mid-flight: counted, and the flight goes on."""
+    port = free_udp_port()
+    rng = np.random.default_rng(11)
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+
+    def junk() -> list[bytes]:
+        good = mav.global_position_int_encode(60_000, int(47.4e7), int(8.5e7), 500_000, 8_000,
+                                              0, 0, 0, 0).pack(mav)
+        return ([rng.bytes(int(rng.integers(1, 300))) for _ in range(50)]
+                + [good[:k] for k in range(1, len(good))]
+                + [mav.global_position_int_encode(60_000, 2_000_000_000, int(8.5e7), 500_000,
+                                                  8_000, 0, 0, 0, 0).pack(mav),
+                   mav.attitude_quaternion_encode(60_000, math.nan, 0.0, 0.0, 0.0, 0.0, 0.0,
+                                                  0.0).pack(mav)])
+
+    async def main() -> DemoResult:
+        scenario = load_scenario(sitl_scenarios()["field-5-tags"])
+        flight = asyncio.create_task(fly(scenario, speedup=SPEEDUP, out_dir=tmp_path,
+                                         stop_after_s=70.0, mavlink_port=port))
+
+        def flying() -> bool:
+            steps = [p / "steps.jsonl" for p in tmp_path.glob("run-*")]
+            return bool(steps) and steps[0].is_file() and len(
+                steps[0].read_text().splitlines()) > 60
+        while not flying():
+            await asyncio.wait([flight], timeout=0.2)
+            assert not flight.done(), "the flight ended before the junk was sent"
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
+            for _ in range(5):
+                for datagram in junk():
+                    sender.sendto(datagram, ("127.0.0.1", port))
+                await asyncio.sleep(0.05)  # spread over a few telemetry periods
+        return await flight
+
+    result = asyncio.run(main())
+    counters = result.run.counters
+    record_figure("bad-mavlink", rejected_position=counters["rejected_position"],
+                  rejected_attitude=counters["rejected_attitude"],
+                  malformed=counters["telemetry_malformed"], tracks=len(result.run.tracks))
+    assert counters["rejected_position"] >= 1  # latitude 200
+    assert counters["rejected_attitude"] + counters["telemetry_malformed"] >= 1, counters  # NaN
+    assert len(result.run.tracks) >= 2 and _ghosts(result) == 0
+    steps = _lines(result.run.out_dir / "steps.jsonl")
+    assert steps[-1]["t_s"] > 65.0  # it flew on to the end
