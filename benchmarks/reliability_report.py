@@ -36,6 +36,18 @@ FAULTS: list[tuple[str, str, str]] = [  # figures name, fault, expected behaviou
     ("fault-battery", "battery falls to 15 %", "the service stops and requests RTL"),
     ("fault-reboot", "the autopilot reboots (5 s silent)",
      "the service reconnects and waits: no arm, take-off, mode or planner setpoints"),
+    ("fault-kill-restart", "the service is killed (SIGKILL) mid-flight and started again",
+     "the killed run replays; the new process takes no automatic step and resumes the "
+     "estimate from its checkpoint (the autopilot holds meanwhile)"),
+]
+BAD_INPUT: list[tuple[str, str, str]] = [
+    ("bad-mavlink", "random and truncated datagrams, latitude 200 and a NaN attitude on the "
+     "service's MAVLink port mid-flight", "refused and counted; the flight goes on"),
+    ("properties", "hypothesis: random measurements, poses, covariances and FOV geometries "
+     "(tests/test_properties.py)", "no NaN, no negative weight, no covariance that is not "
+     "positive definite, no foreign exception"),
+    ("config-fuzz", "every configuration key with a wrong type or out-of-range value "
+     "(tests/test_config_fuzz.py)", "an error naming the key"),
 ]
 
 
@@ -66,6 +78,9 @@ def report(figures: dict[str, dict[str, Any]]) -> str:
              "|---|---|---|"]
     for name, fault, expected in FAULTS:
         lines.append(f"| {fault} | {expected} | {_show(figures.get(name))} |")
+    lines += ["", "## Bad input", "", "| input | expected | measured |", "|---|---|---|"]
+    for name, what, expected in BAD_INPUT:
+        lines.append(f"| {what} | {expected} | {_show(figures.get(name))} |")
     lines += ["",
               "## Security",
               "",
@@ -75,6 +90,8 @@ def report(figures: dict[str, dict[str, Any]]) -> str:
               f"{_show(figures.get('systemd-security'))} |",
               f"| signed MAVLink through the relay (docs/signing.md) | "
               f"{_show(figures.get('signing'))} |",
+              f"| sockets held while flying, all on loopback | "
+              f"{_show(figures.get('no-listening-ports'))} |",
               "",
               "## Load",
               "",

@@ -52,7 +52,7 @@ def test_defaults_and_derived_values() -> None:
     ({"search": {"area": [[47.0, 8.0], [47.1, 8.0]]}}, "search.area: must have at least 3"),
     ({"search": {"area": [[8.5, 147.4], [8.6, 147.4], [8.6, 247.4]]}},
      "search.area: latitudes must be in [-90, 90] and longitudes in [-180, 180]"),
-    ({"search": {"utm_epsg": 4326}}, "geo.utm_epsg: must be a WGS84 / UTM zone"),
+    ({"search": {"utm_epsg": 4326}}, "search.utm_epsg: must be a WGS84 / UTM zone"),
     ({"search": {"altitude_m": 50.0}}, "search.altitude_m: must lie in the safety band"),
     ({"safety": {"min_alt_m": 40.0}}, "safety.max_alt_m: must be above safety.min_alt_m"),
     ({"mission": {"end": "targets"}}, "search.expected_targets: is required when mission.end"),

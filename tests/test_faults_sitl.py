@@ -65,6 +65,14 @@ def _assert_no_control_taken(result: DemoResult, since_s: float) -> None:
     assert result.autopilot.behaviour is not Behaviour.OFFBOARD
 
 
+def _assert_no_control_taken_after_rtl(result: DemoResult, since_s: float) -> None:
+    """After since_s: at most the RTL request, never a planner stream or offboard."""
+    commands = [e for e in _lines(result.run.out_dir / "events.jsonl")
+                if e["event"] == "command" and e["t_s"] > since_s]
+    assert not [e for e in commands if e["kind"] in ("start_offboard", "arm", "takeoff")
+                or (e["kind"] == "start_setpoints" and e["stream"] == "planner")]
+
+
 def _ghosts(result: DemoResult) -> int:
     tracks, truth = result.tracks_xy_m, result.truth_xy_m
     if len(tracks) == 0:
@@ -169,14 +177,20 @@ def test_an_autopilot_reboot_is_waited_out_without_commands(tmp_path: Path) -> N
 
 
 def test_a_low_battery_hands_over_to_the_return(tmp_path: Path) -> None:
-    result = _fly(tmp_path, faults="battery@80:15", stop_after_s=110.0)
+    """Whoever sees it first: the service stops and requests RTL, or the autopilot's own
+    battery failsafe returns and the service lets go of it. Either way it is logged."""
+    battery_s = 80.0
+    result = _fly(tmp_path, faults=f"battery@{battery_s:g}:15", stop_after_s=110.0)
     texts = [text for _, text in _texts(result)]
     record_figure("fault-battery", state=result.run.mission_state,
                   autopilot=result.autopilot.behaviour.value)
-    assert "battery low: stopped, requesting RTL" in texts
-    assert result.run.mission_state == "failsafe"
+    ours = "battery low: stopped, requesting RTL" in texts
+    theirs = "mode RTL: pilot has control" in texts
+    assert ours or theirs, texts
+    assert result.run.mission_state == ("failsafe" if ours else "pilot_has_control")
     assert result.autopilot.behaviour in (Behaviour.RTL, Behaviour.LAND) \
         or not result.autopilot.armed
+    _assert_no_control_taken_after_rtl(result, battery_s)
 
 
 def test_a_signed_link_flies_the_mission_through_the_relay(tmp_path: Path) -> None:

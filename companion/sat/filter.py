@@ -6,6 +6,8 @@ measurement-driven birth -> prune and merge -> state extraction -> track mainten
 
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -14,7 +16,7 @@ from numpy.typing import NDArray
 from companion.errors import InputError
 from companion.sat.birth import BirthWeight, birth, birth_weights
 from companion.sat.extract import extract
-from companion.sat.fov import Region
+from companion.sat.fov import ConvexPolygon, Disk, Region
 from companion.sat.gp import GpParams, GpPredictor
 from companion.sat.mixture import Mixture
 from companion.sat.predict import LinearModel, apply_gp, predict_linear, transition
@@ -81,14 +83,59 @@ class StepReport:
     blind: bool
 
 
+_R_CORR_TOL = 1e-12
+"""Smallest 1 - rho^2 of the measurement covariance accepted (fov._CORR_TOL for components)."""
+
+_MAX_GAP_S = 1e9
+"""Longest step accepted (~31 years, the GP's bound on time offsets): a longer gap can overflow
+the predicted covariances (the constant-velocity Q grows as dt^3)."""
+
+
+def _check_dim(mixture: Mixture, params: SatParams) -> None:
+    """InputError unless the mixture's state dimension is the linear model's (2 or 4)."""
+    if mixture.dim != params.linear_model.state_dim:
+        raise InputError(
+            f"mixture state dimension {mixture.dim} does not match the "
+            f"{params.linear_model.value!r} linear model's {params.linear_model.state_dim}"
+        )
+
+
 def initial_state(mixture: Mixture, t_s: float, params: SatParams) -> SatState:
     """The state before the first step: the initial belief and no tracks."""
+    _check_dim(mixture, params)
     return SatState(t_s, mixture, Tracks.empty(mixture.dim, params.gp.window))
+
+
+def _float_array(value: object, what: str) -> FloatArray:
+    """value as a float64 array, or InputError (strings, None and other non-numbers)."""
+    try:
+        return np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{what}: must be numbers, got {value!r}") from exc
+
+
+def _checked_time(scan: Scan, state: SatState) -> None:
+    """InputError unless the scan's time is a finite number in [state time, + _MAX_GAP_S]."""
+    raw: object = scan.t_s  # typed float, but callers may hand in anything
+    t = math.nan if isinstance(raw, bool) or not isinstance(raw, numbers.Real) else float(raw)
+    if not (math.isfinite(t) and state.t_s <= t <= state.t_s + _MAX_GAP_S):
+        raise InputError(
+            f"scan time {raw!r} s: must be finite, >= {state.t_s} s and at most "
+            f"{_MAX_GAP_S:.0e} s later"
+        )
+
+
+def _checked_sensor(scan: Scan) -> FloatArray:
+    """The sensor's ground position (2,), NaN when unknown; InputError for another shape."""
+    sensor_xy = _float_array(scan.sensor_xy, "scan sensor_xy")
+    if sensor_xy.shape != (2,):
+        raise InputError(f"scan sensor_xy: expected shape (2,), got {sensor_xy.shape}")
+    return sensor_xy
 
 
 def _checked_measurements(scan: Scan) -> tuple[FloatArray, int]:
     """The finite rows of the scan's measurements and how many rows were dropped."""
-    z = np.asarray(scan.measurements_xy, dtype=np.float64)
+    z = _float_array(scan.measurements_xy, "scan measurements")
     if z.size == 0:
         return np.zeros((0, 2)), 0
     if z.ndim != 2 or z.shape[1] != 2:
@@ -99,7 +146,7 @@ def _checked_measurements(scan: Scan) -> tuple[FloatArray, int]:
 
 def _checked_r(r: object) -> FloatArray:
     """The scan's measurement covariance as a symmetric positive definite 2x2, or InputError."""
-    r_cov = np.asarray(r, dtype=np.float64)
+    r_cov = _float_array(r, "scan measurement covariance")
     if r_cov.shape != (2, 2):
         raise InputError(f"scan measurement covariance: expected shape (2, 2), got {r_cov.shape}")
     (a, b), (c, d) = r_cov.tolist()
@@ -107,8 +154,12 @@ def _checked_r(r: object) -> FloatArray:
         raise InputError("scan measurement covariance: must be finite")
     if abs(b - c) > 1e-9 * max(abs(a), abs(d)):
         raise InputError("scan measurement covariance: must be symmetric")
-    if not (a > 0.0 and a * d - b * c > 0.0):
+    # Positive definite with a correlation below 1 - 1e-12 (as fov accepts covariances): a
+    # closer-to-singular R leaves determinants that round to <= 0 downstream.
+    if not (a > 0.0 and b * c < (1.0 - _R_CORR_TOL) * (a * d)):
         raise InputError("scan measurement covariance: must be positive definite")
+    if not math.isfinite(a * d - b * c):  # R beyond ~1e154 m^2: its inverse would overflow
+        raise InputError("scan measurement covariance: too large (its determinant overflows)")
     return r_cov
 
 
@@ -138,13 +189,20 @@ def step(
     """Advance the estimator to scan.t_s with the scan's measurements (one pass of the flowchart).
 
     `gp` fits the GP windows that changed and memoises their solves; the result does not depend
-    on its cache.
+    on its cache. A bad scan raises InputError: a time before the state's or more than 1e9 s
+    after it, a region that is neither a Disk nor a ConvexPolygon nor None, a sensor_xy not of
+    shape (2,), measurements not of shape (m, 2), or an R that is not a symmetric positive
+    definite 2x2 (1 - rho^2 >= 1e-12, determinant finite). Non-finite measurement rows are
+    dropped and counted, not refused; a non-finite sensor_xy makes the step blind.
     """
-    if not np.isfinite(scan.t_s) or scan.t_s < state.t_s:
-        raise InputError(f"scan time {scan.t_s!r} s: must be finite and >= {state.t_s} s")
+    # Every input is checked here, so that a bad scan raises InputError and nothing else.
+    _checked_time(scan, state)
+    _check_dim(state.mixture, params)
     z, dropped = _checked_measurements(scan)
-    sensor_xy = np.asarray(scan.sensor_xy, dtype=np.float64)
+    sensor_xy = _checked_sensor(scan)
     region = scan.region
+    if region is not None and not isinstance(region, Disk | ConvexPolygon):
+        raise InputError(f"scan region: must be a Disk, a ConvexPolygon or None, got {region!r}")
     if region is not None and not np.all(np.isfinite(sensor_xy)):
         region = None  # no usable pose: this frame tells nothing about where we looked
     if region is None:

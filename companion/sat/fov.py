@@ -87,6 +87,14 @@ _ASYM_TOL = 1e-9
 _CORR_TOL = 1e-12
 """Smallest 1 - rho^2 accepted; closer to a singular covariance is not positive definite."""
 
+_MAX_VERTEX_M = 1e150
+"""Largest polygon coordinate accepted: products of coordinates stay far below overflow."""
+
+_MIN_AREA_M2, _MAX_AREA_M2 = 1e-200, 1e200
+"""Areas a region may have. The filter divides by the area (clutter and birth intensities per
+square metre): an area that underflows to 0 or overflows (a disk radius below ~1e-162 m or above
+~1e154 m) would make them infinite or NaN; this range leaves a wide margin."""
+
 _TWO_PI = 2.0 * math.pi
 _INV_SQRT_2PI = 1.0 / math.sqrt(_TWO_PI)
 _INV_SQRT_2 = 1.0 / math.sqrt(2.0)
@@ -110,6 +118,13 @@ def _points(points_xy: FloatArray, name: str) -> FloatArray:
     return pts
 
 
+def _check_area(area_m2: float, what: str) -> None:
+    """InputError unless the area lies in [_MIN_AREA_M2, _MAX_AREA_M2]."""
+    if not _MIN_AREA_M2 <= area_m2 <= _MAX_AREA_M2:  # NaN fails too
+        raise InputError(f"{what} area {area_m2!r} m^2 must lie in "
+                         f"[{_MIN_AREA_M2:.0e}, {_MAX_AREA_M2:.0e}] m^2")
+
+
 def _count(n: int) -> int:
     """n as a sample count >= 0, or InputError."""
     if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 0:
@@ -119,7 +134,10 @@ def _count(n: int) -> int:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class Disk:
-    """The paper's circular FOV: the ground points within radius_m of center_xy (metres)."""
+    """The paper's circular FOV: the ground points within radius_m of center_xy (metres).
+
+    Its area must lie in [1e-200, 1e200] m^2 (InputError otherwise).
+    """
 
     center_xy: FloatArray  # (2,) easting, northing, metres
     radius_m: float
@@ -136,6 +154,7 @@ class Disk:
             raise InputError(f"disk center_xy must be 2 finite numbers, got {self.center_xy!r}")
         if not (math.isfinite(radius) and radius > 0.0):
             raise InputError(f"disk radius_m must be finite and > 0, got {self.radius_m!r}")
+        _check_area(math.pi * radius * radius, "disk")
         object.__setattr__(self, "center_xy", _readonly(center))
         object.__setattr__(self, "radius_m", radius)
 
@@ -178,7 +197,8 @@ class ConvexPolygon:
     """A convex FOV, e.g. a camera footprint on the ground; vertices_xy stored counter-clockwise.
 
     Any orientation and starting vertex may be given; collinear vertices are allowed, repeated
-    ones, reflex turns, self-intersection and zero area are not (InputError).
+    ones, reflex turns, self-intersection and zero area are not (InputError), nor coordinates
+    beyond 1e150 m or an area outside [1e-200, 1e200] m^2.
     """
 
     vertices_xy: FloatArray  # (k, 2), metres, k >= 3
@@ -194,14 +214,21 @@ class ConvexPolygon:
             raise InputError(f"polygon needs at least 3 vertices, got {verts.shape[0]}")
         if not np.isfinite(verts).all():
             raise InputError("polygon vertices_xy contains NaN or infinite values")
-        twice_area = float(np.sum(verts[:, 0] * np.roll(verts[:, 1], -1)
-                                  - np.roll(verts[:, 0], -1) * verts[:, 1]))  # shoelace
-        if twice_area < 0.0:
-            verts = verts[::-1].copy()  # clockwise given: store counter-clockwise
-        edges = np.roll(verts, -1, axis=0) - verts
-        lengths = np.hypot(edges[:, 0], edges[:, 1])
+        if np.abs(verts).max() > _MAX_VERTEX_M:
+            raise InputError(f"polygon vertices_xy must lie within {_MAX_VERTEX_M:.0e} m")
+        # The shape checks run on the vertices centred and scaled into [-1, 1], so that no
+        # product overflows or underflows whatever the polygon's size.
         scale = float(np.max(np.abs(verts - verts.mean(axis=0))))
-        if scale == 0.0 or np.any(lengths <= 1e-12 * scale):
+        if scale == 0.0:
+            raise InputError("polygon has repeated consecutive vertices (an edge of zero length)")
+        q = (verts - verts.mean(axis=0)) / scale
+        twice_area = float(np.sum(q[:, 0] * np.roll(q[:, 1], -1)
+                                  - np.roll(q[:, 0], -1) * q[:, 1]))  # shoelace
+        if twice_area < 0.0:
+            verts, q = verts[::-1].copy(), q[::-1]  # clockwise given: store counter-clockwise
+        edges = np.roll(q, -1, axis=0) - q
+        lengths = np.hypot(edges[:, 0], edges[:, 1])
+        if np.any(lengths <= 1e-12):
             raise InputError("polygon has repeated consecutive vertices (an edge of zero length)")
         nxt = np.roll(edges, -1, axis=0)
         norm = lengths * np.roll(lengths, -1)
@@ -214,6 +241,7 @@ class ConvexPolygon:
         if abs(twice_area) <= 1e-12 * float(lengths.sum()) ** 2:
             raise InputError("polygon is degenerate: its area is zero (collinear vertices)")
         object.__setattr__(self, "vertices_xy", _readonly(verts))
+        _check_area(self.area_m2, "polygon")
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, ConvexPolygon):
@@ -442,7 +470,11 @@ def _polygon(
     ay = (rel[..., 1] - l21 * ax) / l22
     dx, dy = np.roll(ax, -1, axis=1) - ax, np.roll(ay, -1, axis=1) - ay
     length = np.hypot(dx, dy)
-    ux, uy = dx / length, dy / length  # edge direction
+    # An edge shorter than one ulp of v - m (a mean ~1e16 edge lengths away) whitens to zero
+    # length: give it no direction (sd = 0, dropped below as `tiny`) instead of 0 / 0 = NaN.
+    # Such a mean is far outside, where another edge decides the (zero) mass.
+    length_safe = np.where(length > 0.0, length, 1.0)
+    ux, uy = dx / length_safe, dy / length_safe  # edge direction
     sd = ax * uy - ay * ux  # signed distance of the edge line, > 0 with the mean on its left
     ta = ax * ux + ay * uy  # edge start and end along the edge, from the foot point
     tb = ta + length

@@ -14,6 +14,9 @@ from companion.sat.mixture import Mixture
 
 FloatArray = NDArray[np.float64]
 
+_VAR_FLOOR_REL = 1e-12
+"""Relative increase of every variance in a constant-velocity prediction (see predict_linear)."""
+
 
 class LinearModel(Enum):
     """The linear motion model of components that belong to no confirmed track."""
@@ -63,6 +66,13 @@ def predict_linear(mix: Mixture, f: FloatArray, q: FloatArray, p_survive: float)
     else:
         means = mix.means @ f.T
         covs = np.einsum("ij,njk,lk->nil", f, mix.covs, f) + q
+        # F P F^T moves position variance into the position-velocity correlation: with little
+        # process noise, a long step (or a nearly singular P) leaves a matrix whose correlation
+        # is within round-off of 1, singular to working precision (Cholesky and inversion in
+        # merging fail). Raising every variance by _VAR_FLOOR_REL of itself keeps the smallest
+        # eigenvalue of the correlation matrix above ~1e-12 and changes nothing measurable.
+        diag = np.arange(f.shape[0])
+        covs[:, diag, diag] *= 1.0 + _VAR_FLOOR_REL
     return Mixture(p_survive * mix.weights, means, covs, mix.labels)
 
 

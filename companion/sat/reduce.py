@@ -175,25 +175,31 @@ def _moment_match_kernel(  # pragma: no cover - compiled; tested through merge
             continue
         size[g] += 1
         last[g] = i
-        w_out[g] += weights[i]
-        for k in range(d):
-            m_out[g, k] += weights[i] * means[i, k]  # w = sum w_i, m = sum w_i m_i / w
+        w_out[g] += weights[i]  # w = sum w_i
         if labels[i] != NO_LABEL and (labels_out[g] == NO_LABEL or labels[i] < labels_out[g]):
             labels_out[g] = labels[i]
-    for g in range(w_out.shape[0]):
-        if size[g] == 1:
-            m_out[g] = means[last[g]]
-            p_out[g] = covs[last[g]]
-        else:
-            m_out[g] /= w_out[g]
+    # The sums below weigh by w_i / w, not w_i then / w: with tiny (subnormal) weights, as when
+    # pruning is off, w_i P_i underflows and a merged variance came out 0.
     for i in range(n):
         g = group_of[i]
         if g < 0 or size[g] == 1:
             continue
+        share = weights[i] / w_out[g]
+        for k in range(d):
+            m_out[g, k] += share * means[i, k]  # m = sum w_i m_i / w
+    for g in range(w_out.shape[0]):
+        if size[g] == 1:
+            m_out[g] = means[last[g]]
+            p_out[g] = covs[last[g]]
+    for i in range(n):
+        g = group_of[i]
+        if g < 0 or size[g] == 1:
+            continue
+        share = weights[i] / w_out[g]
         for r in range(d):  # P = sum w_i (P_i + (m - m_i)(m - m_i)^T) / w
             for c in range(d):
                 spread = (m_out[g, r] - means[i, r]) * (m_out[g, c] - means[i, c])
-                p_out[g, r, c] += weights[i] * (covs[i, r, c] + spread) / w_out[g]
+                p_out[g, r, c] += share * (covs[i, r, c] + spread)
     for g in range(w_out.shape[0]):
         for r in range(d):
             for c in range(r + 1, d):

@@ -216,7 +216,21 @@ def _detection_kernel(  # pragma: no cover - compiled; tested through detection
         for a in range(d):  # K = P H^T S^-1
             gain[j, a, 0] = cov[j, a, 0] * s_inv[j, 0, 0] + cov[j, a, 1] * s_inv[j, 1, 0]
             gain[j, a, 1] = cov[j, a, 0] * s_inv[j, 0, 1] + cov[j, a, 1] * s_inv[j, 1, 1]
-        for a in range(d):  # P = (I - K H) P, symmetrised
+        # P = (I - K H) P. Its position rows use I - P_pos S^-1 = R S^-1 (S = P_pos + R): the
+        # subtraction P - K H P cancels catastrophically where R << P_pos (a nearly singular R,
+        # or a component that grew wide over a long gap), leaving round-off that breaks
+        # positive definiteness; the product R S^-1 P keeps every digit.
+        m00 = r[0, 0] * s_inv[j, 0, 0] + r[0, 1] * s_inv[j, 1, 0]  # M = R S^-1
+        m01 = r[0, 0] * s_inv[j, 0, 1] + r[0, 1] * s_inv[j, 1, 1]
+        m10 = r[1, 0] * s_inv[j, 0, 0] + r[1, 1] * s_inv[j, 1, 0]
+        m11 = r[1, 0] * s_inv[j, 0, 1] + r[1, 1] * s_inv[j, 1, 1]
+        for b in range(d):  # position rows: M P
+            p_out[j, 0, b] = m00 * cov[j, 0, b] + m01 * cov[j, 1, b]
+            p_out[j, 1, b] = m10 * cov[j, 0, b] + m11 * cov[j, 1, b]
+        p01 = 0.5 * (p_out[j, 0, 1] + p_out[j, 1, 0])  # symmetrised
+        p_out[j, 0, 1] = p_out[j, 1, 0] = p01
+        for a in range(2, d):  # velocity rows: the position-velocity block by symmetry
+            p_out[j, a, 0], p_out[j, a, 1] = p_out[j, 0, a], p_out[j, 1, a]
             for b in range(a, d):
                 pab = cov[j, a, b] - gain[j, a, 0] * cov[j, 0, b] - gain[j, a, 1] * cov[j, 1, b]
                 pba = cov[j, b, a] - gain[j, b, 0] * cov[j, 0, a] - gain[j, b, 1] * cov[j, 1, a]
