@@ -71,6 +71,7 @@ BATTERY_LOW_PERCENT = 20.0
 REACHED_M = 1.5  # the vehicle is this close to a waypoint: the planner moves on
 STREAM_SETTLE_S = 0.5  # PX4 accepts OFFBOARD only after setpoints have streamed (> 2 Hz)
 ESTIMATOR_STOP_S = 2.0  # wall time the step under way may take to end when the mission stops
+MIN_FLYING_M = 1.0  # higher above home than this: the vehicle is flying
 STALL_TICKS = 3  # the control loop ran this many periods late: this process stalled
 POSE_WAIT_S = 1.5  # a frame may wait this long for the telemetry of its capture time
 POSE_POLL_S = 0.02
@@ -157,6 +158,7 @@ class Service:
         self._ready_sent = False
         self._frames: FrameRecorder | None = None
         self._checkpoint_due_s = -math.inf
+        self._checkpoint_found: tuple[Path, dict[str, Any]] | None = None
 
     # -- configuration -----------------------------------------------------------------------
 
@@ -270,14 +272,23 @@ class Service:
         (out / "version.txt").write_text(f"companion {version('companion')}\n")
 
     def _resume(self, out: Path) -> None:
-        """After a restart (a run stopped a short while ago): carry on its estimate, and take no
-        automatic step (arm, take-off, offboard): the pilot selects OFFBOARD to resume."""
+        """Find the checkpoint of a run that stopped a short while ago (a restart?)."""
         found = latest_checkpoint(Path(self.config.output.dir), exclude=out,
                                   max_age_s=RESUME_WITHIN_S, now_wall_s=time.time(), log=self._log)
+        self._checkpoint_found = found
+
+    def _resume_if_flying(self, in_air: bool) -> None:
+        """Once the vehicle is first seen: flying means the service restarted mid-flight. Then
+        carry on the checkpoint's estimate and take no automatic step (arm, take-off, offboard):
+        the pilot selects OFFBOARD to resume. On the ground it is a new flight."""
+        found, self._checkpoint_found = self._checkpoint_found, None
         if found is None:
             return
         path, data = found
-        # A restart: whoever flies the vehicle now decides when the search goes on.
+        if not in_air:
+            self._log(f"checkpoint of {path.parent.name} not resumed: the vehicle is on the "
+                      "ground, a new flight")
+            return
         self.mission = dataclasses.replace(self.mission, auto_arm_spent=True,
                                            auto_offboard_spent=True)
         if not self.pipeline.restore(data):
@@ -411,6 +422,11 @@ class Service:
             stalled, last_tick_s = now_s - last_tick_s > STALL_TICKS * period_s, now_s
             inputs = self._inputs()
             before = self.mission.state
+            if self._checkpoint_found is not None and inputs.connected:
+                latest_s = self.view.latest_boot_s
+                here = None if latest_s is None else self.view.poses.at(latest_s)
+                if here is not None:  # the first position decides: flying or on the ground
+                    self._resume_if_flying(inputs.in_air or here.alt_rel_m > MIN_FLYING_M)
             if not stalled:
                 self.mission, commands = ms.advance(self.mission, inputs, now_s)
                 self._tell_systemd(inputs, before)

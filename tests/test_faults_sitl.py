@@ -392,3 +392,15 @@ def test_junk_and_out_of_range_mavlink_is_refused_and_counted(tmp_path: Path) ->
     assert len(result.run.tracks) >= 2 and _ghosts(result) == 0
     steps = _lines(result.run.out_dir / "steps.jsonl")
     assert steps[-1]["t_s"] > 65.0  # it flew on to the end
+
+
+def test_a_new_flight_on_the_ground_does_not_resume_the_last_one(tmp_path: Path) -> None:
+    """Two missions in a row into one output folder: the second is a new flight (the vehicle
+    is on the ground), so it does not resume the first one's checkpoint and takes off."""
+    _fly(tmp_path, stop_after_s=40.0)
+    second = _fly(tmp_path, stop_after_s=40.0)
+    said = [m for _, m in _texts(second, "log")]
+    assert any(m.endswith("not resumed: the vehicle is on the ground, a new flight")
+               for m in said), said
+    assert not [e for e in _lines(second.run.out_dir / "events.jsonl") if e["event"] == "resumed"]
+    assert second.run.mission_state == "searching" and second.autopilot.armed
