@@ -14,6 +14,7 @@ starts at (0, 0). That frame is UTM up to a constant, and the planners' World is
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 from dataclasses import dataclass, field
@@ -30,6 +31,7 @@ from companion.sat.fov import ConvexPolygon, Disk, Region
 from companion.sat.gp import GpPredictor
 from companion.sat.mixture import Mixture
 from companion.sat.predict import LinearModel
+from companion.sat.tracks import TrackLog
 from companion.sim.run import sat_params
 from companion.vision.calibration import load_calibration
 from companion.vision.camera import CameraModel
@@ -268,6 +270,10 @@ class Pipeline:
         state = self._state_at(t_s)
         scan = Scan(t_s, scan.region, scan.measurements_xy, scan.r_cov, scan.sensor_xy)
         self.state, _ = step(state, scan, self.params, self.gp)
+        if self.state.tracks.log.length:  # the per-step track history is for the study's
+            # plots; a flight of hours would keep every row (and pickle it in checkpoints)
+            self.state = dataclasses.replace(self.state, tracks=dataclasses.replace(
+                self.state.tracks, log=TrackLog.empty(self.state.tracks.means.shape[1])))
         tracks = self.state.tracks
         return StepRecord(
             t_s=t_s, blind=blind, detections=detections,

@@ -67,6 +67,9 @@ __all__ = ["RunResult", "Service", "camera_model"]
 
 FloatArray = NDArray[np.float64]
 TELEMETRY_STALE_S = 0.8  # no telemetry (20 attitudes a second) for this long: the link is down
+# ... and never less than this much wall time (a SITL's speed-up makes 0.8 s of its time short
+# enough for a loaded computer to stall that long)
+TELEMETRY_STALE_WALL_S = 0.4
 BATTERY_LOW_PERCENT = 20.0
 REACHED_M = 1.5  # the vehicle is this close to a waypoint: the planner moves on
 STREAM_SETTLE_S = 0.5  # PX4 accepts OFFBOARD only after setpoints have streamed (> 2 Hz)
@@ -391,7 +394,8 @@ class Service:
         st, view = self.view.status, self.view
         now_s = view.boot_time_now()
         fresh = (now_s is not None and view.latest_boot_s is not None
-                 and now_s - view.latest_boot_s < TELEMETRY_STALE_S)
+                 and now_s - view.latest_boot_s
+                 < max(TELEMETRY_STALE_S, TELEMETRY_STALE_WALL_S * self.time_scale))
         state = self.pipeline.state
         confirmed = 0 if state is None else int(state.tracks.confirmed.sum())
         passes = 0

@@ -1,0 +1,175 @@
+"""Fifty tags in view: the service's pipeline on a 30 fps camera whose every frame holds 50 tags.
+
+Fifty 0.5 m tag36h11 tags (ids 0..49) lie on a 10 x 5 grid filling 85 % of a level camera's
+footprint, at an altitude where each tag's black square is about 24 px wide (decodable without
+decimation). A thread publishes rendered frames of them over the SITL's MJPEG stream at --fps,
+each stamped with its capture time; the service's newest-frame grabber reads them and each newest
+frame goes through `Pipeline.step` (detect, project, GM-PHD step) as fast as the machine allows.
+It prints, at 640x480 and 1280x720: detections and measurements per frame (should be 50), the
+processing time of a step (median, p95; and of the detection alone), the frames processed per
+second of those published, the frames the grabber dropped (counted explicitly: it keeps only
+the newest), and whether the pipeline keeps up with the camera.
+
+    python benchmarks/bench_many_tags.py [--seconds 10] [--fps 30]
+
+The machine is shared, so the timing figures are noisy; the counts are not. The components and
+confirmed tracks at the end are the filter's: with the default pose uncertainty (0.5 m) it
+merges tags closer than about 1.2 m into one component, so on the 640x480 grid (tags 1.1 m
+apart) it confirms fewer tracks than there are tags.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import threading
+import time
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.camera.source import LatestFrameGrabber, MjpegSource
+from companion.config import parse_config
+from companion.geo import LocalNed
+from companion.pipeline import Pipeline
+from companion.vision.camera import BodyPose, CameraModel
+from companion.vision.projection import GeoPose
+from companion.vision.tags import detect_centres
+from sitl.camera import Renderer, Tag
+from sitl.stream import MjpegServer
+
+ORIGIN = LocalNed(47.397742, 8.545594, 488.0)
+TAG_SIZE_M = 0.5
+GRID_COLS, GRID_ROWS = 10, 5  # across (east) x along (north) the image
+GRID_FILL = 0.85  # share of the footprint the grid spans
+TAG_PX = 24.0  # black-square width aimed at: 3 px per cell
+KEEP_UP_SHARE = 0.95  # keeps up: processes at least this share of the frames published
+
+
+def grid_altitude_m(camera: CameraModel, tag_px: float = TAG_PX) -> float:
+    """The altitude at which a level camera sees a TAG_SIZE_M tag tag_px pixels wide."""
+    return min(camera.fx_px, camera.fy_px) * TAG_SIZE_M / tag_px
+
+
+def grid_tags(camera: CameraModel, altitude_m: float, rng: np.random.Generator) -> list[Tag]:
+    """GRID_COLS x GRID_ROWS tags (ids 0, 1, ...) filling GRID_FILL of the footprint of a level
+    camera at altitude_m heading north over (0, 0), each turned by a seeded yaw within +-15 deg
+    (turned further, neighbours' quiet zones could touch on the smaller images)."""
+    half_east_m = altitude_m * 0.5 * camera.width_px / camera.fx_px
+    half_north_m = altitude_m * 0.5 * camera.height_px / camera.fy_px
+    east = GRID_FILL * half_east_m * np.linspace(-1.0, 1.0, 2 * GRID_COLS + 1)[1::2]
+    north = GRID_FILL * half_north_m * np.linspace(-1.0, 1.0, 2 * GRID_ROWS + 1)[1::2]
+    yaws = rng.uniform(-math.radians(15.0), math.radians(15.0), GRID_COLS * GRID_ROWS)
+    return [Tag(i, float(n), float(e), TAG_SIZE_M, float(yaws[i]))
+            for i, (n, e) in enumerate((n, e) for n in north for e in east)]
+
+
+def pipeline_config(camera: CameraModel) -> Any:
+    """A service configuration for this camera over a 60 m square around the origin."""
+    corners = [ORIGIN.ned_to_geodetic(n, e, 0.0)[:2] for n, e in
+               ((-30, -30), (-30, 30), (30, 30), (30, -30))]
+    return parse_config({
+        "camera": {"source": "bench", "width_px": camera.width_px,
+                   "height_px": camera.height_px},
+        "search": {"area": [[float(a), float(b)] for a, b in corners]},
+        "detector": {"threads": 2},
+    })
+
+
+def geo_pose(t_s: float, altitude_m: float) -> GeoPose:
+    """The level, north-facing pose over the origin at altitude_m, at time t_s."""
+    lat, lon, alt = (float(v) for v in ORIGIN.ned_to_geodetic(0.0, 0.0, -altitude_m))
+    return GeoPose(t_s, lat, lon, alt, altitude_m, (1.0, 0.0, 0.0, 0.0))
+
+
+def _publisher(server: MjpegServer, frames: list[NDArray[np.uint8]], fps: float,
+               stop: threading.Event, published: list[int]) -> None:
+    period_s, next_s, k = 1.0 / fps, time.monotonic(), 0
+    while not stop.is_set():
+        server.publish(frames[k % len(frames)], time.monotonic())
+        published[0] += 1
+        k += 1
+        next_s += period_s
+        stop.wait(max(next_s - time.monotonic(), 0.0))
+
+
+def bench(width_px: int, height_px: int, seconds: float, fps: float) -> None:
+    """Print the figures for one resolution."""
+    camera = CameraModel.from_hfov(90.0, width_px, height_px)
+    altitude_m = grid_altitude_m(camera)
+    renderer = Renderer(camera, texture_seed=1)
+    rng = np.random.default_rng(0)
+    tags = grid_tags(camera, altitude_m, rng)
+    pose = BodyPose(0.0, 0.0, 0.0, -altitude_m, (1.0, 0.0, 0.0, 0.0))
+    frames = [renderer.render(pose, tags, rng) for _ in range(30)]  # differ by exposure noise
+    pipeline = Pipeline(pipeline_config(camera), camera)
+    stop, published = threading.Event(), [0]
+    detections: list[int] = []
+    measurements: list[int] = []
+    step_ms: list[float] = []
+    latencies_ms: list[float] = []
+    with MjpegServer() as server:
+        publisher = threading.Thread(target=_publisher,
+                                     args=(server, frames, fps, stop, published))
+        publisher.start()
+        grabber = LatestFrameGrabber(MjpegSource(server.url)).start()
+        try:
+            grabber.get(5.0)  # connected and flowing
+            published_before, dropped_before = published[0], grabber.dropped
+            start = time.monotonic()
+            while time.monotonic() - start < seconds:
+                frame = grabber.get(1.0)
+                if frame is None or frame.capture_time_s is None:
+                    continue
+                started = time.perf_counter()
+                record = pipeline.step(frame.image, geo_pose(frame.capture_time_s, altitude_m))
+                step_ms.append(1e3 * (time.perf_counter() - started))
+                detections.append(record.detections)
+                measurements.append(len(record.measurements_xy_m))
+                latencies_ms.append(1e3 * (time.monotonic() - frame.capture_time_s))
+            elapsed_s = time.monotonic() - start
+            n_published = published[0] - published_before
+            n_dropped = grabber.dropped - dropped_before
+        finally:
+            stop.set()
+            publisher.join()
+            grabber.stop()
+    detect_ms = []
+    det = pipeline.config.detector
+    for image in frames[:10]:
+        started = time.perf_counter()
+        detect_centres(pipeline.detector, image, det.min_decision_margin, det.allowed_ids)
+        detect_ms.append(1e3 * (time.perf_counter() - started))
+    step = np.array(step_ms)
+    processed_fps = len(step) / elapsed_s
+    keeps_up = len(step) >= KEEP_UP_SHARE * n_published
+    state = pipeline.state
+    east_m = sorted({round(t.east_m, 3) for t in tags})
+    north_m = sorted({round(t.north_m, 3) for t in tags})
+    print(f"{width_px}x{height_px} at {altitude_m:.1f} m ({len(tags)} tags, black square "
+          f"{TAG_PX:g} px, {east_m[1] - east_m[0]:.2f} m x {north_m[1] - north_m[0]:.2f} m "
+          f"apart): detections per frame min {min(detections)}, median "
+          f"{np.median(detections):.0f}; measurements per frame min {min(measurements)}; "
+          f"components at the end {0 if state is None else state.mixture.size}, confirmed "
+          f"{0 if state is None else int(state.tracks.confirmed.sum())}")
+    print(f"  Pipeline.step: median {np.median(step):.1f} ms, p95 {np.percentile(step, 95):.1f} "
+          f"ms (detection alone: median {np.median(detect_ms):.1f} ms); latency capture -> "
+          f"tracks median {np.median(latencies_ms):.1f} ms")
+    print(f"  {processed_fps:.1f} frames/s processed ({len(step)}) of {n_published / elapsed_s:.1f}"
+          f" published ({n_published}); dropped by the grabber: {n_dropped}; keeps up with "
+          f"{fps:g} fps: {'yes' if keeps_up else 'no'}")
+
+
+def main() -> None:
+    """Print the figures."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=10.0, help="per resolution")
+    parser.add_argument("--fps", type=float, default=30.0, help="camera frame rate")
+    args = parser.parse_args()
+    for width_px, height_px in ((640, 480), (1280, 720)):
+        bench(width_px, height_px, args.seconds, args.fps)
+
+
+if __name__ == "__main__":
+    main()
