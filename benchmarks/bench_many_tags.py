@@ -27,7 +27,6 @@ import time
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from companion.camera.source import LatestFrameGrabber, MjpegSource
 from companion.config import parse_config
@@ -37,7 +36,7 @@ from companion.vision.camera import BodyPose, CameraModel
 from companion.vision.projection import GeoPose
 from companion.vision.tags import detect_centres
 from sitl.camera import Renderer, Tag
-from sitl.stream import MjpegServer
+from sitl.stream import MjpegServer, publish_at_rate
 
 ORIGIN = LocalNed(47.397742, 8.545594, 488.0)
 TAG_SIZE_M = 0.5
@@ -83,17 +82,6 @@ def geo_pose(t_s: float, altitude_m: float) -> GeoPose:
     return GeoPose(t_s, lat, lon, alt, altitude_m, (1.0, 0.0, 0.0, 0.0))
 
 
-def _publisher(server: MjpegServer, frames: list[NDArray[np.uint8]], fps: float,
-               stop: threading.Event, published: list[int]) -> None:
-    period_s, next_s, k = 1.0 / fps, time.monotonic(), 0
-    while not stop.is_set():
-        server.publish(frames[k % len(frames)], time.monotonic())
-        published[0] += 1
-        k += 1
-        next_s += period_s
-        stop.wait(max(next_s - time.monotonic(), 0.0))
-
-
 def bench(width_px: int, height_px: int, seconds: float, fps: float) -> None:
     """Print the figures for one resolution."""
     camera = CameraModel.from_hfov(90.0, width_px, height_px)
@@ -110,7 +98,7 @@ def bench(width_px: int, height_px: int, seconds: float, fps: float) -> None:
     step_ms: list[float] = []
     latencies_ms: list[float] = []
     with MjpegServer() as server:
-        publisher = threading.Thread(target=_publisher,
+        publisher = threading.Thread(target=publish_at_rate,
                                      args=(server, frames, fps, stop, published))
         publisher.start()
         grabber = LatestFrameGrabber(MjpegSource(server.url)).start()

@@ -18,7 +18,6 @@ import time
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from companion.camera.source import LatestFrameGrabber, MjpegSource
 from companion.config import parse_config
@@ -27,7 +26,7 @@ from companion.pipeline import Pipeline
 from companion.vision.camera import BodyPose, CameraModel
 from companion.vision.projection import GeoPose
 from sitl.camera import Renderer, Tag
-from sitl.stream import MjpegServer
+from sitl.stream import MjpegServer, publish_at_rate
 
 ALTITUDE_M = 8.0
 ORIGIN = LocalNed(47.397742, 8.545594, 488.0)
@@ -46,17 +45,6 @@ def _config(camera: CameraModel) -> Any:
     })
 
 
-def _publisher(server: MjpegServer, frames: list[NDArray[np.uint8]], fps: float,
-               stop: threading.Event, published: list[int]) -> None:
-    period_s, next_s, k = 1.0 / fps, time.monotonic(), 0
-    while not stop.is_set():
-        server.publish(frames[k % len(frames)], time.monotonic())
-        published[0] += 1
-        k += 1
-        next_s += period_s
-        stop.wait(max(next_s - time.monotonic(), 0.0))
-
-
 def bench(width_px: int, height_px: int, seconds: float, fps: float) -> None:
     camera = CameraModel.from_hfov(90.0, width_px, height_px)
     renderer = Renderer(camera, texture_seed=1)
@@ -67,7 +55,7 @@ def bench(width_px: int, height_px: int, seconds: float, fps: float) -> None:
     lat, lon, alt = (float(v) for v in ORIGIN.ned_to_geodetic(0.0, 0.0, -ALTITUDE_M))
     stop, published = threading.Event(), [0]
     with MjpegServer() as server:
-        publisher = threading.Thread(target=_publisher,
+        publisher = threading.Thread(target=publish_at_rate,
                                      args=(server, frames, fps, stop, published))
         publisher.start()
         grabber = LatestFrameGrabber(MjpegSource(server.url)).start()

@@ -21,6 +21,7 @@ import contextlib
 import math
 import socket
 import threading
+import time
 from dataclasses import dataclass
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from types import TracebackType
@@ -34,7 +35,7 @@ from numpy.typing import NDArray
 from companion.camera.mjpeg import CAPTURE_TIME_HEADER, MjpegReader
 from companion.errors import ConfigError, InputError
 
-__all__ = ["CAPTURE_TIME_HEADER", "MjpegReader", "MjpegServer"]
+__all__ = ["CAPTURE_TIME_HEADER", "MjpegReader", "MjpegServer", "publish_at_rate"]
 
 BOUNDARY = "frame"
 
@@ -282,3 +283,16 @@ class MjpegServer:
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  tb: TracebackType | None) -> None:
         self.stop()
+
+
+def publish_at_rate(server: MjpegServer, frames: list[NDArray[np.uint8]], fps: float,
+                    stop: threading.Event, published: list[int]) -> None:
+    """Publish frames round-robin at fps, stamped with time.monotonic(), until stop is set;
+    published[0] counts them (a benchmark's camera, run in a thread)."""
+    period_s, next_s, k = 1.0 / fps, time.monotonic(), 0
+    while not stop.is_set():
+        server.publish(frames[k % len(frames)], time.monotonic())
+        published[0] += 1
+        k += 1
+        next_s += period_s
+        stop.wait(max(next_s - time.monotonic(), 0.0))
