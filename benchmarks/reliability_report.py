@@ -21,8 +21,9 @@ FAULTS: list[tuple[str, str, str]] = [  # figures name, fault, expected behaviou
     ("fault-link-loss10-latency0.2", "packet loss 10 % and 200 ms added latency",
      "the field mission completes with every target confirmed"),
     ("fault-link-loss30", "MAVLink packet loss 30 % both ways",
-     "completes, or, when the autopilot's offboard-loss failsafe takes over, the service lets "
-     "go and never takes control back; no ghost track either way"),
+     "completes, or, when the autopilot's offboard-loss failsafe takes over or the health "
+     "flags drop, the service lets go and never takes control back; no ghost track either "
+     "way"),
     ("fault-link-cut", "link cut for 5 s mid-mission",
      "the autopilot's offboard-loss failsafe holds; the service notices within 1 s, stops "
      "commanding, keeps estimating; on reconnection it says so and waits for the pilot"),
