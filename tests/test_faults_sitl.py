@@ -110,7 +110,7 @@ def test_a_30_percent_lossy_link_is_flown_safely(tmp_path: Path) -> None:
     assert np.all(result.score.errors_m[np.isfinite(result.score.errors_m)] < 1.0)
     texts = _texts(result)
     let_go = [t for t, text in texts  # an autopilot failsafe, a lost link or position
-              if text.endswith("pilot has control") or ": stopped" in text]
+              if text.endswith("pilot has control") or " lost: " in text]
     if let_go:  # nothing but "hold here" setpoints after it
         _assert_no_control_taken(result, let_go[0])
     else:
