@@ -1,7 +1,7 @@
 """Write docs/reliability.md from the figures the reliability tests recorded.
 
 Run the tests first (`make reliability` does both): each fault, bad-input and load test writes
-its measured figures to out/reliability/NAME.json (tests/figures.py). This script turns the
+its measured figures to out/reliability/NAME.json (sitl/figures.py). This script turns the
 latest of them into the tables of docs/reliability.md; a figure that was not measured is shown
 as "not run", never invented.
 

@@ -20,7 +20,9 @@ the service, which then stops searching and waits for a pilot. --pilot-resumes a
 counts how often it had to.
 
 A study, not a test: the exit status is 0 whatever the figures (tests/test_soak.py asserts on
-a short run of the same code, sitl/soak.py). The machine is shared: the timing figures are noisy.
+a short run of the same code, sitl/soak.py). The headline figures also go to
+out/reliability/soak-MINUTESmin.json for docs/reliability.md. The machine is shared: the timing
+figures are noisy.
 """
 
 from __future__ import annotations
@@ -30,7 +32,8 @@ import sys
 from pathlib import Path
 
 from companion.vehicle.mavsdk_link import route_mavsdk_log
-from sitl.soak import SoakOptions, report_lines, soak
+from sitl.figures import record_figure
+from sitl.soak import SoakOptions, report_lines, soak, soak_figures
 
 
 def main() -> None:
@@ -57,8 +60,10 @@ def main() -> None:
                           pilot_resumes=args.pilot_resumes)
     print(f"soak: {args.minutes:g} simulated minutes of search at {args.speedup:g}x, "
           f"about {(60.0 * args.minutes + 45.0) / args.speedup / 60.0:.1f} min wall", flush=True)
-    for line in report_lines(soak(options)):
+    report = soak(options)
+    for line in report_lines(report):
         print(line, flush=True)
+    record_figure(f"soak-{args.minutes:g}min", **soak_figures(report))
 
 
 if __name__ == "__main__":

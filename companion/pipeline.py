@@ -50,6 +50,7 @@ FloatArray = NDArray[np.float64]
 REBOOT_JUMP_S = 1.0  # the autopilot's boot time went back by more: it rebooted
 BLANK_FRAME_STD = 2.0  # grey levels: below this a frame shows nothing (lens cap, black frame)
 MIN_HEIGHT_M = 1.0  # lower than this the camera sees too little of the ground to count
+WARM_UP_STEPS = 12  # enough for a track to be confirmed and predicted by its GP
 
 
 def camera_model(config: CameraConfig) -> CameraModel:
@@ -180,9 +181,29 @@ class Pipeline:
 
     def _state_at(self, t_s: float) -> SatState:
         if self.state is None:
-            dim = 4 if self.params.linear_model is LinearModel.CONSTANT_VELOCITY else 2
-            self.state = initial_state(Mixture.empty(dim), t_s, self.params)
+            self.state = self._initial_state(t_s)
         return self.state
+
+    def _initial_state(self, t_s: float) -> SatState:
+        dim = 4 if self.params.linear_model is LinearModel.CONSTANT_VELOCITY else 2
+        return initial_state(Mixture.empty(dim), t_s, self.params)
+
+    def warm_up(self) -> None:
+        """Step a throwaway estimator on made-up scans of one target in the middle of the
+        area, so that numba compiles (or loads from its cache) the estimator's kernels now and
+        not in the flight's first step. This pipeline's state is left alone."""
+        centre_xy = self.frame.area_xy_m.mean(axis=0)
+        half_m = 10.0
+        region: Region = (Disk(centre_xy, half_m) if self.config.estimator.fov == "disk" else
+                          ConvexPolygon(centre_xy + half_m * np.array(
+                              [[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])))
+        r_cov = np.eye(2) * 0.1
+        state = self._initial_state(0.0)
+        period_s = 1.0 / self.config.estimator.rate_hz
+        for k in range(WARM_UP_STEPS):
+            z = (centre_xy + np.array([0.1 * k, 0.0]))[None, :]
+            state, _ = step(state, Scan(k * period_s, region, z, r_cov, centre_xy),
+                            self.params, self.gp)
 
     # -- checkpoints -------------------------------------------------------------------------
 

@@ -232,6 +232,7 @@ class Service:
             tlog.write(time.time(), system_id, component_id, name, fields)
 
         relay = None
+        warm_up = asyncio.get_running_loop().run_in_executor(None, self._warm_up)
         try:
             url = v.connection
             if v.signing_key_file is not None:  # MAVSDK cannot sign: a relay signs for it
@@ -246,7 +247,8 @@ class Service:
                         tasks = [group.create_task(link.run_telemetry(self.view)),
                                  group.create_task(link.run_recording(record))]
                         done = asyncio.Event()
-                        estimator = group.create_task(self._estimate(grabber, steps, done))
+                        estimator = group.create_task(
+                            self._estimate(grabber, steps, done, warm_up))
                         await self._control(link, stop)
                         done.set()  # the step under way ends and is logged, unless it hangs
                         await asyncio.wait([estimator], timeout=ESTIMATOR_STOP_S)
@@ -314,11 +316,19 @@ class Service:
 
     # -- estimator ---------------------------------------------------------------------------
 
+    def _warm_up(self) -> float:
+        """Compile the estimator's kernels (or load them from numba's cache) before the first
+        step needs them; the seconds it took."""
+        started = time.perf_counter()
+        self.pipeline.warm_up()
+        return time.perf_counter() - started
+
     async def _estimate(self, grabber: LatestFrameGrabber, steps: _JsonLines,
-                        done: asyncio.Event) -> None:
+                        done: asyncio.Event, warm_up: asyncio.Future[float]) -> None:
         """One step per period on the newest frame (no backlog builds up), until done is set."""
         period_s = 1.0 / self.config.estimator.rate_hz
         loop = asyncio.get_running_loop()
+        self._log(f"estimator: ready (kernels compiled or loaded in {await warm_up:.1f} s)")
         next_s = self.clock()
         while not done.is_set():
             with contextlib.suppress(TimeoutError):
@@ -418,7 +428,7 @@ class Service:
     async def _control(self, link: MavsdkLink, stop: asyncio.Event) -> None:
         period_s = 1.0 / self.config.mission.setpoint_rate_hz
         final = (ms.State.DONE, ms.State.FAILSAFE)
-        last_tick_s = self.clock()
+        last_tick_s = next_s = self.clock()
         while not stop.is_set():
             now_s = self.clock()
             # After a stall of this process (a loaded computer) the telemetry that came in
@@ -443,8 +453,11 @@ class Service:
             st = self.view.status
             if self.mission.state in final and st is not None and not st.armed:
                 return  # landed and disarmed after the end
+            # Ticks keep to a schedule, so the time the tick took does not stretch the period;
+            # after a stall the schedule restarts from now rather than sending a burst.
+            next_s = max(next_s + period_s, self.clock())
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(stop.wait(), period_s / self.time_scale)
+                await asyncio.wait_for(stop.wait(), (next_s - self.clock()) / self.time_scale)
 
     def _report_glitch(self) -> None:
         """A line when positions start being refused as implausible, and when they stop."""

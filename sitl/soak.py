@@ -625,3 +625,15 @@ def report_lines(r: SoakReport) -> list[str]:
          if o.pilot_resumes else "  (no pilot: a search the service stopped stays stopped)"),
         f"run folder: {r.out_dir}",
     ]
+
+
+def soak_figures(r: SoakReport) -> dict[str, float | int | str]:
+    """The soak's headline figures, for docs/reliability.md (sitl/figures.py)."""
+    return {"simulated_min": round(r.sim_s / 60.0, 1), "speedup": round(r.sim_s / r.wall_s, 2),
+            "targets": r.scenario.targets.count, "rss_peak_mb": round(r.rss_hwm_mb, 1),
+            "rss_slope_mb_per_h": round(r.rss_slope_mb_per_h, 1),
+            "components_max": r.components_max, "components_cap": r.components_cap,
+            "setpoint_period_median_s": round(r.received.median_s, 3),
+            "setpoint_max_gap_s": round(r.received.max_s, 3),
+            "setpoint_gaps_over_1.5_periods": r.received.over_limit,
+            "steps": f"{r.steps} of {r.steps_due}", "mission": r.mission_state}

@@ -25,10 +25,10 @@ from companion.replay import replay_run
 from companion.sim.scenario import load_scenario
 from sitl.cli import sitl_scenarios
 from sitl.demo import DemoResult, fly, service_config
+from sitl.figures import record_figure
 from sitl.link import free_udp_port
 from sitl.modes import Behaviour
 from sitl.runner import Sitl
-from tests.figures import record_figure
 
 ROOT = Path(__file__).resolve().parent.parent
 SPEEDUP = 4.0

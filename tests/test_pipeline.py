@@ -5,6 +5,8 @@ from __future__ import annotations
 import csv
 import itertools
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -125,3 +127,49 @@ def test_score_matches_one_to_one_within_the_gate() -> None:
     assert result.missed == 1 and result.false_tracks == 2
     assert score(np.zeros((0, 2)), np.array([[0.0, 0.0]])).missed == 1
     assert score(np.array([[1.0, 1.0]]), np.zeros((0, 2))).false_tracks == 1
+
+
+
+
+WARM_UP_CHECK = """
+import json, sys
+from numba.core.registry import CPUDispatcher
+from companion.config import load_config
+from companion.pipeline import Pipeline
+from companion.sat import fov, gp, predict, reduce, update
+from tests.test_pipeline import Flight, _lawnmower_xy
+
+def loaded():
+    return {f"{m.__name__}.{name}": len(kernel.overloads)
+            for m in (fov, gp, predict, reduce, update)
+            for name, kernel in vars(m).items() if isinstance(kernel, CPUDispatcher)}
+
+flight = Flight()
+pipeline = Pipeline(load_config(sys.argv[1]), flight.scenario.camera)
+before = loaded()
+pipeline.warm_up()
+warm, state = loaded(), repr(pipeline.state)
+for k, xy in enumerate(_lawnmower_xy()):
+    pipeline.step(*flight.frame(10.0 + 0.5 * k, xy))
+flown = loaded()
+print(json.dumps({"state after warm-up": state,
+                  "warm-up": sorted(n for n in warm if warm[n] > before[n]),
+                  "flight": sorted(n for n in warm if flown[n] > warm[n]),
+                  "confirmed": int(pipeline.state.tracks.confirmed.sum())}))
+"""
+
+
+@pytest.mark.parametrize("fov", ["camera", "disk"])
+def test_after_warm_up_a_flight_compiles_or_loads_no_more_kernels(tmp_path: Path,
+                                                                 fov: str) -> None:
+    """In a fresh interpreter, warm_up compiles or loads (numba's cache) every estimator
+    kernel that the field flight then steps through, GP prediction included, and leaves the
+    pipeline's state alone."""
+    text = (ROOT / "sitl" / "service.toml").read_text()
+    config = tmp_path / "service.toml"
+    config.write_text(text.replace("[estimator]\n", f'[estimator]\nfov = "{fov}"\n'))
+    done = subprocess.run([sys.executable, "-c", WARM_UP_CHECK, str(config)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=600, check=True)
+    seen = json.loads(done.stdout)
+    assert seen["state after warm-up"] == "None" and seen["confirmed"] >= 3, seen
+    assert len(seen["warm-up"]) >= 5 and seen["flight"] == [], seen

@@ -5,12 +5,9 @@ frame) for SEARCH_S simulated seconds at SPEEDUP, then lands. One run serves eve
 memory after the warm-up, the filter's component cap, the setpoint stream as the autopilot
 received it, and a clean end (landed, no error, no thread or file left open).
 
-No setpoint gap over 1.5 periods is the target, but at this speed-up it is not met (measured
-both as the service sent them and as the autopilot received them, in simulated time): that
-test is an expected failure with the reason, while the stream must never lapse long enough for
-the autopilot's offboard failsafe. The service's link-loss check (0.8 s of simulated time
-without telemetry) is 0.2 s of wall time at 4x: on a machine busy with other work, a stall that
-long makes the service stop searching, and the clean-end test fails with the mission's texts.
+No setpoint may come more than 1.5 periods after the one before, as the autopilot received
+them, in simulated time (at 4x, a stall of 38 ms of wall time would break that). The figures
+go to out/reliability/soak-short.json for docs/reliability.md.
 """
 
 from __future__ import annotations
@@ -21,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from sitl.figures import record_figure
 from sitl.soak import (
     SoakOptions,
     SoakReport,
@@ -29,6 +27,7 @@ from sitl.soak import (
     report_lines,
     rss_slope_mb_per_h,
     soak,
+    soak_figures,
     soak_scenario,
     stream_pauses,
 )
@@ -43,8 +42,10 @@ RSS_GROWTH_LIMIT_MB = 50.0
 @pytest.fixture(scope="module")
 def report(tmp_path_factory: pytest.TempPathFactory) -> SoakReport:
     out: Path = tmp_path_factory.mktemp("soak")
-    return soak(SoakOptions(search_s=SEARCH_S, speedup=SPEEDUP, out_dir=out,
-                            rss_every_s=RSS_EVERY_S, stop_margin_s=STOP_MARGIN_S))
+    report = soak(SoakOptions(search_s=SEARCH_S, speedup=SPEEDUP, out_dir=out,
+                              rss_every_s=RSS_EVERY_S, stop_margin_s=STOP_MARGIN_S))
+    record_figure("soak-short", **soak_figures(report))
+    return report
 
 
 def _figures(report: SoakReport) -> str:
@@ -72,6 +73,12 @@ def test_the_setpoint_stream_never_lapses_into_the_offboard_failsafe(report: Soa
     timeout_s = report.scenario.vehicle.offboard_loss_timeout_s
     assert report.received.count > 0.5 * SEARCH_S / report.setpoint_period_s
     assert report.received.max_s < timeout_s, _figures(report)
+
+
+def test_the_setpoint_stream_never_misses_its_period_by_more_than_half(
+        report: SoakReport) -> None:
+    assert report.received.limit_s == pytest.approx(1.5 * report.setpoint_period_s)
+    assert report.received.over_limit == 0, _figures(report)
 
 
 def test_gap_stats_count_long_gaps_and_skip_deliberate_pauses() -> None:

@@ -19,9 +19,9 @@ from companion.service import Service
 from companion.sim.scenario import load_scenario
 from sitl.cli import sitl_scenarios
 from sitl.demo import service_config
+from sitl.figures import record_figure
 from sitl.link import free_udp_port
 from sitl.runner import Sitl
-from tests.figures import record_figure
 
 ROOT = Path(__file__).resolve().parent.parent
 UNIT = ROOT / "systemd" / "companion.service"

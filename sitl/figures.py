@@ -1,6 +1,6 @@
-"""Figures the reliability tests measure, kept for `benchmarks/reliability_report.py`.
+"""Figures the reliability tests and the soak measure, kept for `benchmarks/reliability_report.py`.
 
-`record_figure(name, **figures)` writes out/reliability/NAME.json (the repository's out/ folder,
+`record_figure(name, **figures)` writes out/reliability/NAME.json (the checkout's out/ folder,
 which git ignores); the report turns the latest of them into docs/reliability.md.
 """
 
