@@ -12,7 +12,8 @@ the newest), and whether the pipeline keeps up with the camera.
 
     python benchmarks/bench_many_tags.py [--seconds 10] [--fps 30]
 
-The machine is shared, so the timing figures are noisy; the counts are not. The components and
+The machine is shared, so the timing figures are noisy; the counts are not. The figures also go
+to out/reliability/many-tags-WxH.json for docs/reliability.md. The components and
 confirmed tracks at the end are the filter's: with the default pose uncertainty (0.5 m) it
 merges tags closer than about 1.2 m into one component, so on the 640x480 grid (tags 1.1 m
 apart) it confirms fewer tracks than there are tags.
@@ -36,6 +37,7 @@ from companion.vision.camera import BodyPose, CameraModel
 from companion.vision.projection import GeoPose
 from companion.vision.tags import detect_centres
 from sitl.camera import Renderer, Tag
+from sitl.figures import record_figure
 from sitl.stream import MjpegServer, publish_at_rate
 
 ORIGIN = LocalNed(47.397742, 8.545594, 488.0)
@@ -147,6 +149,12 @@ def bench(width_px: int, height_px: int, seconds: float, fps: float) -> None:
     print(f"  {processed_fps:.1f} frames/s processed ({len(step)}) of {n_published / elapsed_s:.1f}"
           f" published ({n_published}); dropped by the grabber: {n_dropped}; keeps up with "
           f"{fps:g} fps: {'yes' if keeps_up else 'no'}")
+    record_figure(f"many-tags-{width_px}x{height_px}", detections_min=min(detections),
+                  step_median_ms=round(float(np.median(step)), 1),
+                  step_p95_ms=round(float(np.percentile(step, 95)), 1),
+                  processed_fps=round(processed_fps, 1),
+                  published_fps=round(n_published / elapsed_s, 1), dropped=n_dropped,
+                  keeps_up=keeps_up)
 
 
 def main() -> None:
