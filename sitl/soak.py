@@ -634,6 +634,8 @@ def soak_figures(r: SoakReport) -> dict[str, float | int | str]:
             "rss_slope_mb_per_h": round(r.rss_slope_mb_per_h, 1),
             "components_max": r.components_max, "components_cap": r.components_cap,
             "setpoint_period_median_s": round(r.received.median_s, 3),
-            "setpoint_max_gap_s": round(r.received.max_s, 3),
-            "setpoint_gaps_over_1.5_periods": r.received.over_limit,
+            "setpoint_max_gap_sent_s": round(r.sent.max_s, 3),
+            "setpoint_max_gap_received_s": round(r.received.max_s, 3),
+            "setpoint_gaps_over_1.5_periods_sent": r.sent.over_limit,
+            "setpoint_gaps_over_1.5_periods_received": r.received.over_limit,
             "steps": f"{r.steps} of {r.steps_due}", "mission": r.mission_state}
