@@ -84,7 +84,9 @@ def _ghosts(result: DemoResult) -> int:
 def _record_link(name: str, faults: str, result: DemoResult) -> None:
     record_figure(name, faults=faults, found=len(result.score.errors_m) - result.score.missed,
                   targets=len(result.score.errors_m), ghosts=_ghosts(result),
-                  max_error_m=float(np.max(result.score.errors_m)),
+                  max_error_of_found_m=float(np.max(result.score.errors_m,
+                                                    where=np.isfinite(result.score.errors_m),
+                                                    initial=0.0)),
                   state=result.run.mission_state, autopilot=result.autopilot.behaviour.value)
 
 
