@@ -36,7 +36,8 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_pipeline.py
 
 reliability: $(STAMP)
-	$(BIN)/pytest -q tests/test_faults_sitl.py tests/test_systemd.py tests/test_soak.py
+	$(BIN)/pytest -q tests/test_faults_sitl.py tests/test_service_sitl.py tests/test_systemd.py \
+		tests/test_soak.py
 	$(BIN)/python benchmarks/reliability_report.py
 
 clean:

@@ -118,6 +118,12 @@ class _JsonLines:
         self._fh.close()
 
 
+async def _set_when(stop: asyncio.Event, wake: asyncio.Event) -> None:
+    """Set `wake` once `stop` is set, so a waiting control loop ends at once."""
+    await stop.wait()
+    wake.set()
+
+
 def _run_dir(root: Path, now: datetime) -> Path:
     base = root / now.strftime("run-%Y%m%dT%H%M%SZ")
     path, n = base, 1
@@ -250,12 +256,15 @@ class Service:
                 self._event("connected", url=v.connection)
                 try:
                     async with asyncio.TaskGroup() as group:
+                        wake = asyncio.Event()  # a control tick is due now, not on schedule
+                        self.view.on_mode_change = wake.set
                         tasks = [group.create_task(link.run_telemetry(self.view)),
-                                 group.create_task(link.run_recording(record))]
+                                 group.create_task(link.run_recording(record)),
+                                 group.create_task(_set_when(stop, wake))]
                         done = asyncio.Event()
                         estimator = group.create_task(
                             self._estimate(grabber, steps, done, warm_up))
-                        await self._control(link, stop)
+                        await self._control(link, stop, wake)
                         done.set()  # the step under way ends and is logged, unless it hangs
                         await asyncio.wait([estimator], timeout=ESTIMATOR_STOP_S)
                         for task in [*tasks, estimator]:
@@ -431,11 +440,14 @@ class Service:
             setpoints_streaming=self._streaming_since_s is not None
             and self.clock() - self._streaming_since_s >= STREAM_SETTLE_S)
 
-    async def _control(self, link: MavsdkLink, stop: asyncio.Event) -> None:
+    async def _control(self, link: MavsdkLink, stop: asyncio.Event, wake: asyncio.Event) -> None:
+        """Tick at the setpoint rate, and at once when `wake` is set (a change of mode)."""
         period_s = 1.0 / self.config.mission.setpoint_rate_hz
         final = (ms.State.DONE, ms.State.FAILSAFE)
         last_tick_s = next_s = self.clock()
+        early = False  # this tick was woken ahead of the schedule: it sends no setpoint
         while not stop.is_set():
+            wake.clear()
             now_s = self.clock()
             # After a stall of this process (a loaded computer) the telemetry that came in
             # meanwhile is still queued: judge the link one tick later, not now.
@@ -452,7 +464,7 @@ class Service:
                 self._tell_systemd(inputs, before)
                 for command in commands:
                     await self._execute(link, command)
-            if self._stream is not None:
+            if self._stream is not None and not early:
                 await self._send_setpoint(link, period_s)
             await self._announce_targets(link)
             self._report_glitch()
@@ -461,9 +473,13 @@ class Service:
                 return  # landed and disarmed after the end
             # Ticks keep to a schedule, so the time the tick took does not stretch the period;
             # after a stall the schedule restarts from now rather than sending a burst.
-            next_s = max(next_s + period_s, self.clock())
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(stop.wait(), (next_s - self.clock()) / self.time_scale)
+            if not early:
+                next_s = max(next_s + period_s, self.clock())
+            try:
+                await asyncio.wait_for(wake.wait(), (next_s - self.clock()) / self.time_scale)
+                early = True
+            except TimeoutError:
+                early = False
 
     def _report_glitch(self) -> None:
         """A line when positions start being refused as implausible, and when they stop."""

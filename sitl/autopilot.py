@@ -158,6 +158,7 @@ class Snapshot:
     setpoints_streaming: bool  # fast enough for OFFBOARD to be accepted now
     rejected_unsigned: int = 0  # signing on: unsigned frames dropped (all boots)
     rejected_bad_signature: int = 0  # signing on: wrong key, replayed or too old (all boots)
+    behaviour_reported_clock_s: float | None = None  # first heartbeat with this behaviour
 
 
 @dataclass
@@ -211,6 +212,7 @@ class MockAutopilot:
         self._landed_at_s = 0.0
         pilot = Behaviour.POSITION if cfg.flavour is Flavour.PX4 else Behaviour.MANUAL
         self._behaviour = pilot
+        self._behaviour_reported_clock_s: float | None = None
         self._mode_target: Target | None = None
         self._rtl_phase = 0
         self._guided_takeoff_alt: float | None = None
@@ -267,7 +269,8 @@ class MockAutopilot:
                             self._reboot_until_s < 0.0, self._last_setpoint_clock_s,
                             self._setpoints_streaming(),
                             rejected_unsigned=self._rejected_unsigned,
-                            rejected_bad_signature=self._rejected_bad_signature)
+                            rejected_bad_signature=self._rejected_bad_signature,
+                            behaviour_reported_clock_s=self._behaviour_reported_clock_s)
 
     # -- the operator and the faults ----------------------------------------------------------
 
@@ -347,6 +350,7 @@ class MockAutopilot:
             return
         previous = self._behaviour
         self._behaviour = behaviour
+        self._behaviour_reported_clock_s = None
         self._mode_target = None
         self._rtl_phase = 0
         if behaviour is not Behaviour.OFFBOARD:
@@ -692,13 +696,19 @@ class MockAutopilot:
     def _send_due(self) -> None:
         t = self._t_s
         if t >= self._next_heartbeat:
-            self._next_heartbeat = t + 1.0
-            self._send(self._heartbeat())
+            self._next_heartbeat = max(self._next_heartbeat + 1.0, t)  # 1 Hz, on schedule
+            self._send_heartbeat()
         for msg_id, interval in list(self._intervals.items()):
             due = self._next_due.get(msg_id, 0.0)
             if t >= due:
                 self._next_due[msg_id] = max(due + interval, t)
                 self._send_message(msg_id)
+
+    def _send_heartbeat(self) -> None:
+        """The heartbeat, which carries the mode; notes when a new mode is first reported."""
+        if self._behaviour_reported_clock_s is None:
+            self._behaviour_reported_clock_s = self._boot_wall_s + self._t_s
+        self._send(self._heartbeat())
 
     def _heartbeat(self) -> mavlink.MAVLink_message:
         cfg = self.config
@@ -732,7 +742,7 @@ class MockAutopilot:
         v = self._vehicle
         m = self._mav
         if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
-            self._send(self._heartbeat())
+            self._send_heartbeat()
         elif msg_id == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
             self._send(m.autopilot_version_encode(
                 CAPABILITIES, 0x010E0000, 0, 0, 0, b"\x00" * 8, b"\x00" * 8, b"\x00" * 8, 0, 0,

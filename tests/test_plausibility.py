@@ -4,6 +4,7 @@ frame is a blind step; a checkpoint carries the estimate over a restart."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -14,6 +15,7 @@ from companion.config import load_config
 from companion.errors import ConfigError
 from companion.pipeline import Pipeline, camera_model
 from companion.record.checkpoint import CHECKPOINT_NAME, latest_checkpoint, save_checkpoint
+from companion.vehicle.mavsdk_link import FlightMode, Status
 from companion.vehicle.plausibility import PositionGate
 from companion.vehicle.view import VehicleView
 from companion.vision.projection import GeoPose
@@ -82,6 +84,21 @@ def test_the_view_refuses_and_counts_malformed_and_implausible_telemetry() -> No
                              "implausible": 1}
     assert view.poses.position_count == 1 and view.poses.attitude_count == 1
     assert view.gate.refusing_since_s == pytest.approx(10.4)
+
+
+def test_the_view_signals_a_change_of_mode_or_arming_and_nothing_else() -> None:
+    view = VehicleView(lambda: 100.0)
+    calls: list[Status | None] = []
+    view.on_mode_change = lambda: calls.append(view.status)
+    status = Status(FlightMode.OFFBOARD, armed=True, in_air=True, position_ok=True,
+                    armable=True, battery_percent=80.0)
+    changes = [status, dataclasses.replace(status, battery_percent=79.0),
+               dataclasses.replace(status, in_air=False, position_ok=False),
+               dataclasses.replace(status, flight_mode=FlightMode.POSCTL),
+               dataclasses.replace(status, flight_mode=FlightMode.POSCTL, armed=False)]
+    for s in changes:
+        view.on_status(s)
+    assert calls == [changes[0], changes[3], changes[4]]
 
 
 def _pipeline() -> Pipeline:

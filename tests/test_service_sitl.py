@@ -15,12 +15,14 @@ from pymavlink import mavutil
 from companion.sim.scenario import Scenario, load_scenario
 from sitl.cli import sitl_scenarios
 from sitl.demo import FENCE_MARGIN_M, DemoResult, fly
+from sitl.figures import record_figure
 from sitl.modes import Behaviour
 from sitl.runner import autopilot_config
 
 SPEEDUP = 4.0
 SETPOINT_PERIOD_S = 0.1  # mission.setpoint_rate_hz = 10
 HEARTBEAT_PERIOD_S = 1.0  # the mode reaches the service in the autopilot's heartbeat
+SITL_LATE_S = 0.1  # how late the SITL autopilot's loop may send what is due, on a loaded machine
 
 
 def _scenario(flavour: Literal["px4", "ardupilot"] = "px4") -> Scenario:
@@ -85,9 +87,17 @@ def test_pilot_takeover_stops_commanding_and_estimating_goes_on(tmp_path: Path) 
     events = _lines(result.run.out_dir / "events.jsonl")
     released = [e for e in events if e["event"] == "command" and e["kind"] == "stop_setpoints"]
     assert len(released) == 1
-    # It notices in the next heartbeat and lets go within one setpoint period of that.
-    assert takeover_s <= released[0]["t_s"] <= takeover_s + HEARTBEAT_PERIOD_S + SETPOINT_PERIOD_S
     snap = result.autopilot
+    # The mode reaches the service in the autopilot's next heartbeat; the service lets go within
+    # one setpoint period of that (at once: the mode change wakes its control loop).
+    reported_s = snap.behaviour_reported_clock_s
+    assert reported_s is not None
+    assert takeover_s <= reported_s <= takeover_s + HEARTBEAT_PERIOD_S + SITL_LATE_S
+    release_s = released[0]["t_s"] - reported_s
+    record_figure("fault-pilot-mode", release_after_heartbeat_s=round(release_s, 3),
+                  release_after_switch_s=round(released[0]["t_s"] - takeover_s, 3),
+                  autopilot=snap.behaviour.value, state=result.run.mission_state)
+    assert 0.0 <= release_s <= SETPOINT_PERIOD_S
     assert snap.last_setpoint_clock_s <= released[0]["t_s"] + SETPOINT_PERIOD_S
     assert snap.behaviour is Behaviour.POSITION  # never taken back
     assert result.run.mission_state == "pilot_has_control"

@@ -44,6 +44,7 @@ class VehicleView:
         self.gate = gate or PositionGate()
         self.rejected = {"position": 0, "local_position": 0, "attitude": 0, "implausible": 0}
         self.status: Status | None = None
+        self.on_mode_change: Callable[[], None] = lambda: None  # flight mode or arming changed
         self.local_ned_m: tuple[float, float, float] | None = None
         self.latest_boot_s: float | None = None
         self.home_amsl_m: float | None = None  # from alt_amsl - alt_rel
@@ -111,8 +112,11 @@ class VehicleView:
         self._stamp(t_s)
 
     def on_status(self, status: Status) -> None:
-        """Mode, armed, health, battery."""
-        self.status = status
+        """Mode, armed, health, battery; a change of mode or arming calls `on_mode_change`."""
+        before, self.status = self.status, status
+        if before is None or (before.flight_mode, before.armed) != (status.flight_mode,
+                                                                    status.armed):
+            self.on_mode_change()
 
     # -- what it knows -----------------------------------------------------------------------
 
