@@ -696,7 +696,9 @@ class MockAutopilot:
     def _send_due(self) -> None:
         t = self._t_s
         if t >= self._next_heartbeat:
-            self._next_heartbeat = max(self._next_heartbeat + 1.0, t)  # 1 Hz, on schedule
+            # 1 Hz, drifting with the loop: locked in step with the other streams, each second's
+            # burst of messages met the same control tick of the service at 4x.
+            self._next_heartbeat = t + 1.0
             self._send_heartbeat()
         for msg_id, interval in list(self._intervals.items()):
             due = self._next_due.get(msg_id, 0.0)
