@@ -12,6 +12,18 @@ out in order. Rules that hold on every path:
   vehicle's current position, ignored by the autopilot outside OFFBOARD) once it reports the
   planner stream stopped, so that PX4 accepts OFFBOARD if the pilot selects it; the search then
   resumes. Without it nothing is streamed and the service never flies again in this mission.
+* The service never requests a mode, arms or takes off after anyone else changed the mode.
+  Every mode change it sees once it has started deciding is either one its own last command
+  leads to (`Mission.expected_modes`: its take-off's AUTO.TAKEOFF then Hold on PX4, GUIDED on
+  ArduPilot; its OFFBOARD request) or someone else's: the pilot's, a ground station's or the
+  autopilot's own failsafe. Someone else's spends every automatic step for good.
+* "Airborne" is the vehicle in the air *and* at the take-off altitude, whichever of the landed
+  state and the heartbeat comes first; nothing streams during a take-off the autopilot flies.
+  After its own take-off on ArduPilot (GUIDED, which MAVSDK reports as OFFBOARD) the search
+  starts by itself once airborne, with `auto_offboard`.
+* A lost position or health flag while searching is a pause (PAUSED: nothing is commanded);
+  the search resumes when it is usable again if the vehicle is still in OFFBOARD, and a mode
+  left meanwhile is a takeover.
 * DONE and FAILSAFE are final: a new mission needs a new `Mission`.
 """
 
@@ -26,6 +38,9 @@ from typing import Literal
 from companion.errors import ConfigError
 
 STATUSTEXT_MAX = 50  # MAVLink STATUSTEXT payload, characters
+ARM_RETRY_EVERY_S = 2.0  # a refused arm is asked again this often (PX4's transient refusals)
+TAKEOFF_REACHED_FRACTION = 0.9  # airborne: at least this share of the take-off altitude ...
+TAKEOFF_REACHED_M = 0.5  # ... or within this of it, whichever is lower
 
 
 class FlightMode(Enum):
@@ -44,6 +59,13 @@ class FlightMode(Enum):
     UNKNOWN = "unknown"
 
 
+class Autopilot(Enum):
+    """The firmware family: its own take-off selects different modes."""
+
+    PX4 = "px4"
+    ARDUPILOT = "ardupilot"
+
+
 class State(Enum):
     """Where the mission is."""
 
@@ -53,6 +75,7 @@ class State(Enum):
     TAKING_OFF = "taking_off"
     READY = "ready"
     SEARCHING = "searching"
+    PAUSED = "paused"  # searching, but the position is unusable: nothing is commanded
     PILOT_HAS_CONTROL = "pilot_has_control"
     FAILSAFE = "failsafe"
     DONE = "done"
@@ -119,7 +142,7 @@ class MissionConfig:
     sweeps: int = 1
     time_limit_s: float = 900.0
     end_action: Literal["hold", "land", "rtl"] = "land"
-    arm_timeout_s: float = 10.0
+    arm_timeout_s: float = 20.0  # a refused arm is asked again every 2 s for this long
     takeoff_timeout_s: float = 60.0
 
     def __post_init__(self) -> None:
@@ -156,6 +179,8 @@ class MissionInputs:
     confirmed_targets: int
     expected_targets: int | None
     setpoints_streaming: bool  # the shell is actually sending setpoints now
+    alt_rel_m: float | None = None  # above home (the autopilot's relative altitude)
+    autopilot: Autopilot = Autopilot.PX4
 
 
 @dataclass(frozen=True, slots=True)
@@ -170,6 +195,12 @@ class Mission:
     auto_offboard_spent: bool = False
     pilot_took_over: bool = False
     search_started_s: float | None = None
+    deciding: bool = False  # past WAITING_FOR_HEALTH once: mode changes are judged from then
+    mode_seen: FlightMode | None = None  # the mode at the last tick (UNKNOWN never counts)
+    mode_ours: bool = False  # the current mode came from our own last command
+    mode_fresh: bool = False  # the current mode was entered while we watched
+    expected_modes: frozenset[FlightMode] = frozenset()  # what our last command leads to
+    arm_asked_s: float = 0.0  # when ARM was last asked
 
 
 _END_COMMAND = {"hold": CommandKind.HOLD, "land": CommandKind.LAND, "rtl": CommandKind.RTL}
@@ -198,8 +229,40 @@ def _stop(m: Mission) -> list[Command]:
     return [_STOP] if m.stream is not None else []
 
 
+def _takeoff_reached(cfg: MissionConfig, i: MissionInputs) -> bool:
+    """At the take-off altitude (within 10 %, or 0.5 m)."""
+    margin_m = min(TAKEOFF_REACHED_M, (1.0 - TAKEOFF_REACHED_FRACTION) * cfg.takeoff_alt_m)
+    return i.alt_rel_m is not None and i.alt_rel_m >= cfg.takeoff_alt_m - margin_m
+
+
+def _takeoff_modes(autopilot: Autopilot) -> frozenset[FlightMode]:
+    """The modes our own take-off puts the vehicle in (PX4's Hold only once up: see _observe)."""
+    if autopilot is Autopilot.ARDUPILOT:
+        return frozenset({FlightMode.OFFBOARD})  # GUIDED: MAVSDK's take-off selects it
+    return frozenset({FlightMode.TAKEOFF, FlightMode.HOLD})
+
+
+def _observe(m: Mission, i: MissionInputs) -> Mission:
+    """Follow the flight mode: whose doing is each change? Someone else's spends every
+    automatic step. Before the service starts deciding, a change only moves the baseline."""
+    mode = i.flight_mode
+    if mode is FlightMode.UNKNOWN or mode is m.mode_seen:
+        return m
+    if not m.deciding or m.mode_seen is None:
+        return dataclasses.replace(m, mode_seen=mode, mode_ours=False, mode_fresh=False)
+    ours = mode in m.expected_modes
+    if (ours and mode is FlightMode.HOLD and m.mode_seen is FlightMode.TAKEOFF
+            and not _takeoff_reached(m.config, i)):
+        ours = False  # PX4 ends its take-off in Hold at the altitude; below it, someone else
+    return dataclasses.replace(
+        m, mode_seen=mode, mode_ours=ours, mode_fresh=True,
+        auto_arm_spent=m.auto_arm_spent or not ours,
+        auto_offboard_spent=m.auto_offboard_spent or not ours)
+
+
 def _may_hold_stream(m: Mission, i: MissionInputs) -> bool:
-    """Stream HOLD_HERE in READY: never into a stale OFFBOARD, nor after a no-resume takeover."""
+    """Stream HOLD_HERE in READY: never into an OFFBOARD (stale, or our ArduPilot take-off's
+    GUIDED without auto_offboard), nor after a takeover without resume."""
     return i.flight_mode is not FlightMode.OFFBOARD and not (
         m.pilot_took_over and not m.config.resume_on_pilot_offboard
     )
@@ -211,6 +274,20 @@ def _enter_ready(
     stream = _may_hold_stream(m, i) and m.stream is None
     return _go(m, State.READY, t_s, text, severity, [_start(Stream.HOLD_HERE)] if stream else [],
                stream=Stream.HOLD_HERE if stream else m.stream)
+
+
+def _start_search(m: Mission, t_s: float, text: str,
+                  **changes: object) -> tuple[Mission, list[Command]]:
+    return _go(m, State.SEARCHING, t_s, text, Severity.INFO, [_start(Stream.PLANNER)],
+               stream=Stream.PLANNER,
+               search_started_s=t_s if m.search_started_s is None else m.search_started_s,
+               **changes)
+
+
+def _takeover(m: Mission, i: MissionInputs, t_s: float) -> tuple[Mission, list[Command]]:
+    return _go(m, State.PILOT_HAS_CONTROL, t_s, f"mode {i.flight_mode.name}: pilot has control",
+               Severity.WARNING, _stop(m), stream=None, pilot_took_over=True,
+               auto_arm_spent=True, auto_offboard_spent=True)
 
 
 def _end_reason(cfg: MissionConfig, i: MissionInputs, searched_s: float) -> str | None:
@@ -227,13 +304,17 @@ def _end_reason(cfg: MissionConfig, i: MissionInputs, searched_s: float) -> str 
 def _searching(m: Mission, i: MissionInputs, t_s: float) -> tuple[Mission, list[Command]]:
     cfg = m.config
     if i.flight_mode is not FlightMode.OFFBOARD:  # someone else chose a mode: let go at once
-        return _go(m, State.PILOT_HAS_CONTROL, t_s, f"mode {i.flight_mode.name}: pilot has control",
-                   Severity.WARNING, [_STOP], stream=None, pilot_took_over=True)
+        return _takeover(m, i, t_s)
     if i.battery_low:
         return _go(m, State.FAILSAFE, t_s, "battery low: stopped, requesting RTL",
-                   Severity.CRITICAL, [_STOP, Command(CommandKind.RTL)], stream=None)
-    if not (i.health_ok and i.position_ok):
-        return _go(m, State.FAILSAFE, t_s, "position lost: stopped, autopilot failsafe",
+                   Severity.CRITICAL, [*_stop(m), Command(CommandKind.RTL)], stream=None)
+    usable = i.health_ok and i.position_ok
+    if m.state is State.PAUSED:
+        if not usable:
+            return m, []
+        return _start_search(m, t_s, "position back: searching")
+    if not usable:
+        return _go(m, State.PAUSED, t_s, "position lost: paused, not commanding",
                    Severity.CRITICAL, [_STOP], stream=None)
     started_s = t_s if m.search_started_s is None else m.search_started_s
     reason = _end_reason(cfg, i, t_s - started_s)
@@ -247,11 +328,45 @@ def _pilot_has_control(m: Mission, i: MissionInputs, t_s: float) -> tuple[Missio
     healthy = i.health_ok and i.position_ok and not i.battery_low
     if not (healthy and m.config.resume_on_pilot_offboard):
         return (dataclasses.replace(m, stream=None), [_STOP]) if m.stream else (m, [])
-    if i.flight_mode is FlightMode.OFFBOARD and m.stream is Stream.HOLD_HERE:
-        return _go(m, State.SEARCHING, t_s, "pilot chose offboard: searching", Severity.INFO,
-                   [_start(Stream.PLANNER)], stream=Stream.PLANNER)
+    if i.flight_mode is FlightMode.OFFBOARD and (
+            m.stream is Stream.HOLD_HERE or (m.mode_fresh and i.armed and i.in_air)):
+        return _start_search(m, t_s, "pilot chose offboard: searching")
     if m.stream is None and i.flight_mode is not FlightMode.OFFBOARD and not i.setpoints_streaming:
         return dataclasses.replace(m, stream=Stream.HOLD_HERE), [_start(Stream.HOLD_HERE)]
+    return m, []
+
+
+def _asked(m: Mission, command: Command, t_s: float, autopilot: Autopilot) -> Mission:
+    """The bookkeeping of an automatic command: the modes it leads to, when ARM was asked."""
+    if command.kind is CommandKind.TAKEOFF:
+        return dataclasses.replace(m, expected_modes=_takeoff_modes(autopilot))
+    if command.kind is CommandKind.START_OFFBOARD:
+        return dataclasses.replace(m, expected_modes=frozenset({FlightMode.OFFBOARD}))
+    if command.kind is CommandKind.ARM:
+        return dataclasses.replace(m, arm_asked_s=t_s)
+    return m
+
+
+def _takeoff(m: Mission, i: MissionInputs, t_s: float, text: str,
+             **changes: object) -> tuple[Mission, list[Command]]:
+    cfg = m.config
+    command = Command(CommandKind.TAKEOFF, takeoff_alt_m=cfg.takeoff_alt_m)
+    return _go(_asked(m, command, t_s, i.autopilot), State.TAKING_OFF, t_s, text,
+               Severity.INFO, [command], **changes)
+
+
+def _taking_off(m: Mission, i: MissionInputs, t_s: float) -> tuple[Mission, list[Command]]:
+    cfg = m.config
+    if i.in_air and _takeoff_reached(cfg, i) and i.flight_mode not in (FlightMode.TAKEOFF,
+                                                                       FlightMode.UNKNOWN):
+        if i.flight_mode is FlightMode.OFFBOARD and m.mode_ours:  # ArduPilot: our GUIDED
+            if cfg.auto_offboard and not m.auto_offboard_spent:
+                return _start_search(m, t_s, "airborne in guided: searching",
+                                     auto_offboard_spent=True)
+            return _enter_ready(m, i, t_s, "airborne in guided: pilot's turn")
+        return _enter_ready(m, i, t_s, "airborne: ready, waiting for offboard")
+    if not i.armed or t_s - m.since_s >= cfg.takeoff_timeout_s:
+        return _enter_ready(m, i, t_s, "takeoff failed: pilot's turn", Severity.WARNING)
     return m, []
 
 
@@ -268,56 +383,57 @@ def advance(mission: Mission, inputs: MissionInputs, t_s: float) -> tuple[Missio
                    Severity.WARNING, _stop(m), stream=None,
                    auto_arm_spent=m.auto_arm_spent or spent,
                    auto_offboard_spent=m.auto_offboard_spent or spent)
+    before = m
+    m = _observe(m, i)
+    foreign = m.mode_seen is not before.mode_seen and m.mode_fresh and not m.mode_ours
     healthy = i.health_ok and i.position_ok and not i.battery_low
     if m.state is State.WAITING_FOR_VEHICLE:
         return _go(m, State.WAITING_FOR_HEALTH, t_s, "vehicle connected: checking health",
                    Severity.INFO, [])
-    if m.state is State.SEARCHING:
+    if m.state in (State.SEARCHING, State.PAUSED):
         return _searching(m, i, t_s)
     if m.state is State.PILOT_HAS_CONTROL:
         return _pilot_has_control(m, i, t_s)
     if m.state is State.WAITING_FOR_HEALTH:
         if not healthy:
             return m, []
+        m = dataclasses.replace(m, deciding=True)
         if cfg.auto_arm_takeoff and not m.auto_arm_spent and not i.in_air:
             if i.armed:
-                return _go(m, State.TAKING_OFF, t_s, f"taking off to {cfg.takeoff_alt_m:g} m",
-                           Severity.INFO, [Command(CommandKind.TAKEOFF,
-                                                   takeoff_alt_m=cfg.takeoff_alt_m)],
-                           auto_arm_spent=True)
-            return _go(m, State.ARMING, t_s, "healthy: arming", Severity.INFO,
-                       [Command(CommandKind.ARM)], auto_arm_spent=True)
+                return _takeoff(m, i, t_s, f"taking off to {cfg.takeoff_alt_m:g} m",
+                                auto_arm_spent=True)
+            arm = Command(CommandKind.ARM)
+            return _go(_asked(m, arm, t_s, i.autopilot), State.ARMING, t_s, "healthy: arming",
+                       Severity.INFO, [arm], auto_arm_spent=True)
         return _enter_ready(m, i, t_s, "healthy: ready, waiting for offboard")
     # ARMING, TAKING_OFF, READY: we do not fly the vehicle; on bad health wait for it again.
     if not healthy:
         why = "battery low" if i.battery_low else "position lost"
         return _go(m, State.WAITING_FOR_HEALTH, t_s, f"{why}: waiting for health",
                    Severity.WARNING, _stop(m), stream=None)
-    waited_s = t_s - m.since_s
+    if foreign and m.state is not State.READY:  # (in READY _observe spent the auto steps)
+        return _takeover(m, i, t_s)  # someone else chose a mode: no automatic step, ever
     if m.state is State.ARMING:
         if i.armed:
-            return _go(m, State.TAKING_OFF, t_s, f"armed: taking off to {cfg.takeoff_alt_m:g} m",
-                       Severity.INFO, [Command(CommandKind.TAKEOFF,
-                                               takeoff_alt_m=cfg.takeoff_alt_m)])
-        if waited_s >= cfg.arm_timeout_s:
+            return _takeoff(m, i, t_s, f"armed: taking off to {cfg.takeoff_alt_m:g} m")
+        if t_s - m.since_s >= cfg.arm_timeout_s:
             return _enter_ready(m, i, t_s, "arming failed: pilot's turn", Severity.WARNING)
+        if t_s - m.arm_asked_s >= ARM_RETRY_EVERY_S:  # PX4 refuses for a while after healthy
+            arm = Command(CommandKind.ARM)
+            return _asked(m, arm, t_s, i.autopilot), [arm]
         return m, []
     if m.state is State.TAKING_OFF:
-        if i.in_air and i.flight_mode not in (FlightMode.TAKEOFF, FlightMode.UNKNOWN):
-            return _enter_ready(m, i, t_s, "airborne: ready, waiting for offboard")
-        if not i.armed or waited_s >= cfg.takeoff_timeout_s:
-            return _enter_ready(m, i, t_s, "takeoff failed: pilot's turn", Severity.WARNING)
-        return m, []
+        return _taking_off(m, i, t_s)
     # READY
-    if i.flight_mode is FlightMode.OFFBOARD and m.stream is not None:
-        return _go(m, State.SEARCHING, t_s, "offboard: searching", Severity.INFO,
-                   [_start(Stream.PLANNER)], stream=Stream.PLANNER, auto_offboard_spent=True,
-                   search_started_s=t_s if m.search_started_s is None else m.search_started_s)
+    pilot_offboard = m.mode_fresh and not m.mode_ours and i.armed and i.in_air  # ArduPilot GUIDED
+    if i.flight_mode is FlightMode.OFFBOARD and (m.stream is not None or pilot_offboard):
+        return _start_search(m, t_s, "offboard: searching", auto_offboard_spent=True)
     if m.stream is None and _may_hold_stream(m, i):
         return dataclasses.replace(m, stream=Stream.HOLD_HERE), [_start(Stream.HOLD_HERE)]
     if (cfg.auto_offboard and not m.auto_offboard_spent and m.stream is not None
             and i.setpoints_streaming and i.armed and i.in_air
             and i.flight_mode is not FlightMode.OFFBOARD):
-        return dataclasses.replace(m, auto_offboard_spent=True), [
-            Command(CommandKind.START_OFFBOARD), statustext("requesting offboard")]
+        offboard = Command(CommandKind.START_OFFBOARD)
+        m = _asked(dataclasses.replace(m, auto_offboard_spent=True), offboard, t_s, i.autopilot)
+        return m, [offboard, statustext("requesting offboard")]
     return m, []

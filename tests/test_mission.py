@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 
 from companion.errors import ConfigError
 from companion.mission import (
+    Autopilot,
     Command,
     CommandKind,
     FlightMode,
@@ -26,9 +27,9 @@ K = CommandKind
 OK = MissionInputs(
     connected=True, health_ok=True, armed=True, in_air=True, flight_mode=FlightMode.POSCTL,
     battery_low=False, position_ok=True, coverage_passes=0, confirmed_targets=0,
-    expected_targets=None, setpoints_streaming=False,
+    expected_targets=None, setpoints_streaming=False, alt_rel_m=10.0,
 )
-ON_GROUND = replace(OK, armed=False, in_air=False, flight_mode=FlightMode.HOLD)
+ON_GROUND = replace(OK, armed=False, in_air=False, flight_mode=FlightMode.HOLD, alt_rel_m=0.0)
 STREAMING = replace(OK, setpoints_streaming=True)
 OFFBOARD = replace(STREAMING, flight_mode=FlightMode.OFFBOARD)
 HOLD_HERE = Command(K.START_SETPOINTS, stream=Stream.HOLD_HERE)
@@ -119,7 +120,7 @@ def test_no_auto_arm_unless_configured_and_arming_timeout_hands_over() -> None:
     m, ticks = run(Mission(MissionConfig(auto_arm_takeoff=True, arm_timeout_s=5.0)),
                    [ON_GROUND] * 30)
     flat = [k for t in ticks for k in kinds(t)]
-    assert m.state is State.READY and flat == [K.ARM, K.START_SETPOINTS]
+    assert m.state is State.READY and flat == [K.ARM] * 3 + [K.START_SETPOINTS]  # every 2 s
     assert "arming failed: pilot's turn" in [x for t in ticks for x in texts(t)]
     # Already armed on the ground: straight to the takeoff; in the air: no takeoff at all.
     m, ticks = run(Mission(MissionConfig(auto_arm_takeoff=True)), [OK, replace(OK, in_air=False)])
@@ -163,14 +164,21 @@ def test_without_resume_a_takeover_is_final_for_the_service() -> None:
     assert m.state is State.READY and m.stream is None
 
 
-def test_low_battery_stops_and_requests_rtl_lost_position_only_stops() -> None:
+def test_low_battery_stops_and_requests_rtl_lost_position_pauses() -> None:
     m, commands = advance(searching(), replace(OFFBOARD, battery_low=True), 10.0)
     assert m.state is State.FAILSAFE and kinds(commands) == [K.STOP_SETPOINTS, K.RTL]
     assert commands[-1].severity is Severity.CRITICAL
     assert run(m, [OFFBOARD, OK, replace(OK, connected=False)] * 10)[1] == [[]] * 30  # final
     for lost in (replace(OFFBOARD, position_ok=False), replace(OFFBOARD, health_ok=False)):
         m, commands = advance(searching(), lost, 10.0)
-        assert m.state is State.FAILSAFE and kinds(commands) == [K.STOP_SETPOINTS]
+        assert m.state is State.PAUSED and kinds(commands) == [K.STOP_SETPOINTS]
+        m, ticks = run(m, [lost] * 5, 11.0)
+        assert m.state is State.PAUSED and ticks == [[]] * 5  # nothing commanded meanwhile
+        back, commands = advance(m, OFFBOARD, 16.0)  # still in our OFFBOARD: carry on
+        assert back.state is State.SEARCHING and commands[0] == PLANNER
+        assert back.search_started_s == 3.0  # the time limit counts from the first start
+        gone, commands = advance(m, replace(OFFBOARD, flight_mode=FlightMode.HOLD), 16.0)
+        assert gone.state is State.PILOT_HAS_CONTROL and kinds(commands) == []  # a takeover
     # The mode changed in the same tick (the pilot or the autopilot reacted): no RTL over it.
     m, commands = advance(searching(), replace(OK, battery_low=True), 10.0)
     assert m.state is State.PILOT_HAS_CONTROL and kinds(commands) == [K.STOP_SETPOINTS]
@@ -242,6 +250,121 @@ def test_link_cut_before_anything_was_commanded_keeps_auto_offboard() -> None:
     m, ticks = run(Mission(MissionConfig(auto_offboard=True)),
                    [replace(OK, health_ok=False), replace(OK, connected=False), OK, OK, STREAMING])
     assert m.state is State.READY and kinds(ticks[-1]) == [K.START_OFFBOARD]
+
+
+# ---------------------------------------------------------------------------------------------
+# Real firmware: the orders of events ArduPilot and PX4 were seen to produce
+# ---------------------------------------------------------------------------------------------
+
+AUTO = MissionConfig(auto_arm_takeoff=True, auto_offboard=True, takeoff_alt_m=8.0)
+AP_GROUND = replace(ON_GROUND, flight_mode=FlightMode.MANUAL, autopilot=Autopilot.ARDUPILOT)
+AP_ARMED = replace(AP_GROUND, armed=True)
+AP_GUIDED = replace(AP_ARMED, flight_mode=FlightMode.OFFBOARD)  # MAVSDK: GUIDED is "OFFBOARD"
+NEVER_AGAIN = (K.ARM, K.TAKEOFF, K.START_OFFBOARD)
+
+
+def climbing(base: MissionInputs, alt_m: float) -> MissionInputs:
+    return replace(base, in_air=True, alt_rel_m=alt_m)
+
+
+def ardupilot_taking_off() -> tuple[Mission, list[list[Command]]]:
+    """The automatic flight on ArduPilot up to the GUIDED take-off under way (in air at 3 m)."""
+    m, ticks = run(Mission(AUTO), [AP_GROUND, AP_GROUND, AP_ARMED, AP_GUIDED, AP_GUIDED,
+                                   climbing(AP_GUIDED, 1.0), climbing(AP_GUIDED, 3.0)])
+    assert [kinds(t) for t in ticks] == [[], [K.ARM], [K.TAKEOFF], [], [], [], []]
+    assert m.state is State.TAKING_OFF
+    return m, ticks
+
+
+def test_ardupilot_guided_takeoff_searches_by_itself_once_at_altitude() -> None:
+    m, _ = ardupilot_taking_off()
+    # GUIDED from the heartbeat before "in air": nothing streams while ArduPilot climbs.
+    m, ticks = run(m, [climbing(AP_GUIDED, 5.0), climbing(replace(AP_GUIDED,
+                                                                  setpoints_streaming=True), 7.0)])
+    assert ticks == [[], []] and m.state is State.TAKING_OFF
+    m, commands = advance(m, climbing(AP_GUIDED, 7.6), 20.0)
+    assert m.state is State.SEARCHING and commands[0] == PLANNER
+    assert kinds(commands) == [K.START_SETPOINTS]  # no mode request: the take-off chose GUIDED
+    assert texts(commands) == ["airborne in guided: searching"]
+
+
+def test_ardupilot_guided_takeoff_without_auto_offboard_waits_for_the_pilot() -> None:
+    m, _ = run(Mission(replace(AUTO, auto_offboard=False)),
+               [AP_GROUND, AP_GROUND, AP_ARMED, AP_GUIDED, climbing(AP_GUIDED, 8.0)])
+    assert m.state is State.READY and m.stream is None  # no stream into GUIDED
+    loiter = climbing(replace(AP_GUIDED, flight_mode=FlightMode.HOLD), 8.0)
+    m, ticks = run(m, [loiter] * 5 + [climbing(AP_GUIDED, 8.0)], 5.0)  # the pilot: LOITER, GUIDED
+    assert [kinds(t) for t in ticks] == [[K.START_SETPOINTS], [], [], [], [], [K.START_SETPOINTS]]
+    assert m.state is State.SEARCHING and ticks[-1][0] == PLANNER
+
+
+@pytest.mark.parametrize("mode", [FlightMode.HOLD, FlightMode.LAND], ids=["loiter", "land"])
+@pytest.mark.parametrize("when", ["taking-off", "at-altitude-stalled", "searching"])
+def test_ardupilot_pilot_mode_is_never_overridden(mode: FlightMode, when: str) -> None:
+    """The pilot's LOITER or LAND at any point: no mode request, arm or take-off after it."""
+    m, ticks = ardupilot_taking_off()
+    if when == "at-altitude-stalled":  # the old stall: in READY in our own GUIDED
+        m, _ = run(Mission(replace(AUTO, auto_offboard=False)),
+                   [AP_GROUND, AP_GROUND, AP_ARMED, AP_GUIDED, climbing(AP_GUIDED, 8.0)])
+    elif when == "searching":
+        m, _ = run(m, [climbing(AP_GUIDED, 8.0)], 10.0)
+        assert m.state is State.SEARCHING
+    pilot = climbing(replace(AP_ARMED, flight_mode=mode, setpoints_streaming=True), 6.0)
+    m, commands = advance(m, pilot, 30.0)
+    assert m.state is State.PILOT_HAS_CONTROL or (m.state is State.READY
+                                                 and when == "at-altitude-stalled")
+    later = [pilot] * 5 + [replace(pilot, setpoints_streaming=False)] * 100
+    later += [replace(AP_ARMED, flight_mode=mode)] * 20  # landed, still armed
+    m, ticks = run(m, later, 31.0)
+    flat = [k for t in [commands, *ticks] for k in kinds(t)]
+    assert not set(flat) & set(NEVER_AGAIN)
+
+
+def test_px4_landed_state_ahead_of_the_heartbeat_is_not_airborne() -> None:
+    on_pad = replace(ON_GROUND, flight_mode=FlightMode.HOLD)
+    m, _ = run(Mission(AUTO), [on_pad, on_pad, replace(on_pad, armed=True)])
+    assert m.state is State.TAKING_OFF
+    # "taking off" (in air) arrives before the AUTO.TAKEOFF heartbeat: still Hold, at 0 m.
+    m, ticks = run(m, [climbing(replace(on_pad, armed=True), -0.01),
+                       climbing(replace(on_pad, armed=True, flight_mode=FlightMode.TAKEOFF), 0.3),
+                       climbing(replace(on_pad, armed=True, flight_mode=FlightMode.TAKEOFF), 5.0)],
+                   3.0)
+    assert ticks == [[], [], []] and m.state is State.TAKING_OFF
+    m, ticks = run(m, [climbing(replace(STREAMING, flight_mode=FlightMode.HOLD), 7.9)] * 2
+                   + [climbing(OFFBOARD, 8.0)], 6.0)
+    assert [kinds(t) for t in ticks] == [[K.START_SETPOINTS], [K.START_OFFBOARD],
+                                         [K.START_SETPOINTS]]
+    assert m.state is State.SEARCHING
+
+
+def test_px4_pilot_hold_during_the_takeoff_is_a_takeover() -> None:
+    on_pad = replace(ON_GROUND, flight_mode=FlightMode.HOLD)
+    taking_off = climbing(replace(on_pad, armed=True, flight_mode=FlightMode.TAKEOFF), 3.0)
+    m, _ = run(Mission(AUTO), [on_pad, on_pad, replace(on_pad, armed=True), taking_off])
+    hold = climbing(replace(STREAMING, flight_mode=FlightMode.HOLD), 3.2)  # below 8 m: not ours
+    m, ticks = run(m, [hold] * 3 + [replace(hold, setpoints_streaming=False)] * 50, 4.0)
+    assert m.state is State.PILOT_HAS_CONTROL
+    assert not {k for t in ticks for k in kinds(t)} & set(NEVER_AGAIN)
+
+
+def test_a_refused_arm_is_asked_again_until_a_mode_change_or_the_timeout() -> None:
+    on_pad = replace(ON_GROUND, flight_mode=FlightMode.HOLD)
+    m, ticks = run(Mission(AUTO), [on_pad] * 6)  # refused (PX4: "velocity unstable")
+    assert [kinds(t) for t in ticks] == [[], [K.ARM], [], [K.ARM], [], [K.ARM]]
+    m, ticks = run(m, [replace(on_pad, armed=True)], 6.0)
+    assert kinds(ticks[0]) == [K.TAKEOFF]
+    m, ticks = run(Mission(AUTO), [on_pad, on_pad, on_pad, replace(on_pad,
+                                   flight_mode=FlightMode.POSCTL)] + [on_pad] * 30)
+    flat = [k for t in ticks for k in kinds(t)]
+    assert flat == [K.ARM, K.START_SETPOINTS]  # the pilot's mode: no retry, a hold stream
+    assert m.state is State.PILOT_HAS_CONTROL
+
+
+def test_mode_changes_before_the_first_decision_are_only_the_baseline() -> None:
+    booting = replace(ON_GROUND, health_ok=False, flight_mode=FlightMode.MANUAL)
+    m, ticks = run(Mission(AUTO), [booting, replace(booting, flight_mode=FlightMode.HOLD),
+                                   replace(ON_GROUND, flight_mode=FlightMode.HOLD)])
+    assert kinds(ticks[-1]) == [K.ARM] and m.state is State.ARMING
 
 
 @pytest.mark.parametrize(
