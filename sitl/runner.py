@@ -11,14 +11,17 @@ from __future__ import annotations
 import dataclasses
 import math
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from types import TracebackType
+from typing import Protocol
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from companion.sim.scenario import Scenario
-from companion.vision.camera import BodyPose
+from companion.vision.camera import BodyPose, CameraModel
 from sitl.autopilot import AutopilotConfig, Failsafe, MockAutopilot, Snapshot
 from sitl.camera import Renderer
 from sitl.clock import SimClock
@@ -29,7 +32,8 @@ from sitl.stream import MjpegServer
 from sitl.vehicle import VehicleLimits
 from sitl.world import TargetWorld, clutter_tags
 
-__all__ = ["FrameCounts", "Sitl", "autopilot_config"]
+__all__ = ["CameraLoop", "FrameClock", "FrameCounts", "Shot", "Sitl", "autopilot_config",
+           "render_scene"]
 
 PX4_OFFBOARD_PORT = 14540  # where PX4 SITL sends MAVLink for an offboard API (MAVSDK)
 _PILOT_MODES = {
@@ -37,6 +41,7 @@ _PILOT_MODES = {
     "hold": Behaviour.HOLD, "land": Behaviour.LAND, "rtl": Behaviour.RTL,
 }
 _SCHEDULE_POLL_WALL_S = 0.01
+CLOCK_JUMP_S = 1.0  # a camera clock that goes back by more than this restarts the schedule
 
 
 def autopilot_config(scenario: Scenario) -> AutopilotConfig:
@@ -194,60 +199,125 @@ class Sitl:
     # -- the camera ---------------------------------------------------------------------------
 
     def _camera_loop(self) -> None:
-        camera = self.scenario.camera
-        period_s = 1.0 / camera.rate_hz
+        CameraLoop(self.stream, self.scenario.camera, self.clock, self._shot,
+                   self._camera_fault, self.faults.frame_drop, self._camera_rng,
+                   self.frames).run(self._stopping)
+
+    def _shot(self, due_s: float) -> Shot | None:
+        """The frame due now, from the autopilot's true state; None while it reboots."""
+        snap = self.autopilot.snapshot()
+        if not snap.online:
+            return None
+        return Shot(snap.t_s, snap.clock_s, lambda: self._render(snap))
+
+    def _render(self, snap: Snapshot) -> np.ndarray:
+        v = snap.vehicle
+        north_m, east_m, down_m = (float(c) for c in v.position_ned)
+        pose = BodyPose(snap.t_s, north_m, east_m, down_m, v.quaternion_wxyz())
+        return render_scene(self.scenario, self.world, self.renderer, pose, snap.clock_s,
+                            self._camera_rng)
+
+
+def render_scene(scenario: Scenario, world: TargetWorld, renderer: Renderer, pose: BodyPose,
+                 scenario_t_s: float, rng: np.random.Generator) -> NDArray[np.uint8]:
+    """The frame seen from `pose`: the world's tags at scenario_t_s, misses and clutter drawn."""
+    s = scenario
+    tags = world.tags(scenario_t_s)
+    # Misses are per frame; the clutter rate is per step dt, spread over the step's frames.
+    frames_per_step = max(s.camera.rate_hz * s.dt_s, 1.0)
+    hidden = {t.tag_id for t in tags if rng.random() > s.sensor.p_detect}
+    distractors = clutter_tags(
+        s.camera, pose, world.target_count, s.targets.tag_size_m,
+        s.sensor.clutter_prob / frames_per_step, s.sensor.clutter_rate / frames_per_step, rng,
+    )
+    return renderer.render(pose, tags, rng, distractors=distractors, hidden=hidden)
+
+
+class FrameClock(Protocol):
+    """The clock a camera's frames fall due on."""
+
+    def now_s(self) -> float:
+        """The time now."""
+
+    def wall_s(self, sim_s: float) -> float:
+        """Wall-clock duration of a duration on this clock."""
+
+
+@dataclass(frozen=True, slots=True)
+class Shot:
+    """A frame to take: its capture time (autopilot boot time base), scenario time, drawing."""
+
+    capture_time_s: float  # what the frame is stamped with
+    scenario_t_s: float  # time since the start, for the fault plan
+    draw: Callable[[], NDArray[np.uint8]]  # renders the image (not called when dropped)
+
+
+class CameraLoop:
+    """Publishes `camera`'s frames on `stream` at its rate on `clock`, through the camera faults.
+
+    take(due_s) gives the frame due at clock time due_s (None: no pose, counted offline);
+    fault(t_s) the camera fault in effect at a scenario time; frame_drop is the probability
+    a frame is lost. Counts go into `frames`. A clock that goes back (an autopilot reboot)
+    restarts the schedule.
+    """
+
+    def __init__(self, stream: MjpegServer, camera: CameraModel, clock: FrameClock,
+                 take: Callable[[float], Shot | None], fault: Callable[[float], str | None],
+                 frame_drop: float, rng: np.random.Generator,
+                 frames: FrameCounts | None = None) -> None:
+        self.stream = stream
+        self.shape_px = (camera.height_px, camera.width_px)
+        self.period_s = 1.0 / camera.rate_hz
+        self.clock = clock
+        self.take = take
+        self.fault = fault
+        self.frame_drop = frame_drop
+        self.rng = rng
+        self.frames = frames if frames is not None else FrameCounts()
+
+    def run(self, stopping: threading.Event) -> None:
+        """Publish frames until `stopping` is set."""
+        period_s, frames = self.period_s, self.frames
         next_s = self.clock.now_s()
-        last: np.ndarray | None = None
-        while not self._stopping.is_set():
-            wait_s = next_s - self.clock.now_s()
-            if wait_s > 0.0 and self._stopping.wait(self.clock.wall_s(wait_s)):
-                break
-            behind = math.floor((self.clock.now_s() - next_s) / period_s)
-            if behind > 0:
-                self.frames.late += behind
-                next_s += behind * period_s
-            next_s += period_s
-            snap = self.autopilot.snapshot()
-            if not snap.online:
-                self.frames.offline += 1
+        last: NDArray[np.uint8] | None = None
+        while not stopping.is_set():
+            now_s = self.clock.now_s()
+            if next_s - now_s > period_s + CLOCK_JUMP_S:  # the clock went back
+                next_s = now_s
+            if next_s > now_s:
+                stopping.wait(self.clock.wall_s(next_s - now_s))
                 continue
-            fault = self._camera_fault(snap.clock_s)
-            if fault == "drop" or self._camera_rng.random() < self.faults.frame_drop:
-                self.frames.dropped += 1
+            behind = math.floor((now_s - next_s) / period_s)
+            if behind > 0:
+                frames.late += behind
+                next_s += behind * period_s
+            due_s, next_s = next_s, next_s + period_s
+            shot = self.take(due_s)
+            if shot is None:
+                frames.offline += 1
+                continue
+            fault = self.fault(shot.scenario_t_s)
+            if fault == "drop" or self.rng.random() < self.frame_drop:
+                frames.dropped += 1
                 continue
             if fault == "freeze" and last is not None:
                 image = last
             elif fault == "black":
-                image = np.zeros((camera.height_px, camera.width_px), np.uint8)
+                image = np.zeros(self.shape_px, np.uint8)
             else:
-                image = self._render(snap)
+                image = shot.draw()
             last = image
             if fault == "corrupt":
-                self.stream.publish_jpeg(self._garbled(image), snap.t_s)
+                self.stream.publish_jpeg(self._garbled(image), shot.capture_time_s)
             else:
-                self.stream.publish(image, snap.t_s)
-            self.frames.published += 1
+                self.stream.publish(image, shot.capture_time_s)
+            frames.published += 1
 
-    def _render(self, snap: Snapshot) -> np.ndarray:
-        s, rng = self.scenario, self._camera_rng
-        v = snap.vehicle
-        north_m, east_m, down_m = (float(c) for c in v.position_ned)
-        pose = BodyPose(snap.t_s, north_m, east_m, down_m, v.quaternion_wxyz())
-        tags = self.world.tags(snap.clock_s)
-        # Misses are per frame; the clutter rate is per step dt, spread over the step's frames.
-        frames_per_step = max(s.camera.rate_hz * s.dt_s, 1.0)
-        hidden = {t.tag_id for t in tags if rng.random() > s.sensor.p_detect}
-        distractors = clutter_tags(
-            s.camera, pose, self.world.target_count, s.targets.tag_size_m,
-            s.sensor.clutter_prob / frames_per_step, s.sensor.clutter_rate / frames_per_step, rng,
-        )
-        return self.renderer.render(pose, tags, rng, distractors=distractors, hidden=hidden)
-
-    def _garbled(self, image: np.ndarray) -> bytes:
+    def _garbled(self, image: NDArray[np.uint8]) -> bytes:
         """A broken JPEG: half the time not decodable at all, else with garbage scan data."""
         ok, encoded = cv2.imencode(".jpg", image)
         data = bytearray(encoded.tobytes() if ok else b"")
-        keep = 2 if self._camera_rng.random() < 0.5 else len(data) // 3  # SOI / SOI + header
-        noise = self._camera_rng.integers(0, 256, len(data) - keep, dtype=np.uint8)
+        keep = 2 if self.rng.random() < 0.5 else len(data) // 3  # SOI / SOI + header
+        noise = self.rng.integers(0, 256, len(data) - keep, dtype=np.uint8)
         data[keep:] = noise.tobytes()
         return bytes(data)
