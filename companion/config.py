@@ -98,6 +98,7 @@ class PoseConfig:
     vertical_std_m: float
     attitude_std_deg: float
     heading_std_deg: float
+    camera_rest_height_m: float
     max_gap_s: float
     glitch_gate_m: float
     glitch_accept_after_s: float
@@ -148,6 +149,7 @@ class MissionConfig:
 
     auto_arm_takeoff: bool
     auto_offboard: bool
+    arm_retry_s: float
     resume_on_pilot_offboard: bool
     end: Literal["covered", "targets", "time"]
     time_limit_s: float
@@ -233,13 +235,17 @@ SECTIONS: dict[str, tuple[Key, ...]] = {
     ),
     "pose": (
         Key("horizontal_std_m", "horizontal_std_m", Float(ge=0, le=100), 0.5,
-            "standard deviation of the autopilot's horizontal position"),
+            "least standard deviation of the horizontal position: the autopilot's own figure "
+            "(ODOMETRY, ESTIMATOR_STATUS or GPS_RAW_INT) is used when larger"),
         Key("vertical_std_m", "vertical_std_m", Float(ge=0, le=100), 0.3,
-            "standard deviation of the height above the ground"),
+            "least standard deviation of the height above the ground (same sources)"),
         Key("attitude_std_deg", "attitude_std_deg", Float(ge=0, le=30), 1.0,
-            "standard deviation of roll and pitch"),
+            "least standard deviation of roll and pitch (ODOMETRY's, when larger)"),
         Key("heading_std_deg", "heading_std_deg", Float(ge=0, le=90), 2.0,
-            "standard deviation of the heading"),
+            "least standard deviation of the heading (ODOMETRY's, when larger)"),
+        Key("camera_rest_height_m", "camera_rest_height_m", Float(ge=-5, le=5), 0.0,
+            "the camera's height above ground with the vehicle at rest, added to the relative "
+            "altitude (zero at rest) when no rangefinder or terrain height is known"),
         Key("max_gap_s", "max_gap_s", Float(gt=0, le=10), 0.5,
             "a frame whose capture time falls in a longer gap of telemetry has no pose"),
         Key("glitch_gate_m", "glitch_gate_m", Float(gt=0, le=1000), 8.0,
@@ -293,6 +299,8 @@ SECTIONS: dict[str, tuple[Key, ...]] = {
             "arm and take off by itself (default: the pilot does)"),
         Key("auto_offboard", "auto_offboard", Bool(), False,
             "enter OFFBOARD by itself once, when ready (default: the pilot selects it)"),
+        Key("arm_retry_s", "arm_retry_s", Float(gt=0, le=600), 20.0,
+            "an arm the autopilot refuses is asked again every 2 s for this long"),
         Key("resume_on_pilot_offboard", "resume_on_pilot_offboard", Bool(), True,
             "after a pilot takeover, resume when the pilot selects OFFBOARD again"),
         Key("end", "end", Choice("covered", "targets", "time"), "covered",

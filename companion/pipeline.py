@@ -228,8 +228,10 @@ class Pipeline:
 
     # -- steps -------------------------------------------------------------------------------
 
-    def step(self, image: NDArray[np.uint8], pose: GeoPose) -> StepRecord:
-        """One estimator step on a frame taken at pose.t_s (the autopilot's boot time)."""
+    def step(self, image: NDArray[np.uint8], pose: GeoPose,
+             sigma: PoseUncertainty | None = None) -> StepRecord:
+        """One estimator step on a frame taken at pose.t_s (the autopilot's boot time), the
+        pose uncertain by sigma (default: the configured floors)."""
         if pose.height_agl_m < MIN_HEIGHT_M:
             return self.blind(pose.t_s, "on the ground")
         if float(np.std(image[::4, ::4])) < BLANK_FRAME_STD:
@@ -241,15 +243,17 @@ class Pipeline:
         det = self.config.detector
         _, pixels = detect_centres(self.detector, image, det.min_decision_margin,
                                    det.allowed_ids)
-        return self.step_detections(pixels, pose)
+        return self.step_detections(pixels, pose, sigma)
 
-    def step_detections(self, pixels: FloatArray, pose: GeoPose) -> StepRecord:
+    def step_detections(self, pixels: FloatArray, pose: GeoPose,
+                        sigma: PoseUncertainty | None = None) -> StepRecord:
         """One step on a frame's detected tag centres (OpenCV pixels): what replay re-runs."""
+        sigma = sigma or self.pose_sigma
         det = self.config.detector
         est = self.config.estimator
         centre = np.array([[self.camera.cx_px, self.camera.cy_px]])
         ground = project_detections(self.camera, pose, np.vstack([centre, pixels]),
-                                    self.frame.utm, det.pixel_std_px, self.pose_sigma,
+                                    self.frame.utm, det.pixel_std_px, sigma,
                                     est.max_range_m)
         valid = ground.valid[1:]
         z = self.frame.from_utm(ground.xy_utm_m[1:][valid])
@@ -274,7 +278,9 @@ class Pipeline:
             "boot_t_s": pose.t_s,
             "pose": [pose.lat_deg, pose.lon_deg, pose.alt_amsl_m, pose.height_agl_m,
                      *pose.q_wxyz],
-            "pixels": np.asarray(pixels, dtype=np.float64).tolist()}
+            "pixels": np.asarray(pixels, dtype=np.float64).tolist(),
+            "pose_sigma": [sigma.horizontal_m, sigma.vertical_m, sigma.attitude_deg,
+                           sigma.heading_deg]}
         return record
 
     def blind(self, boot_t_s: float, reason: str) -> StepRecord:

@@ -46,8 +46,9 @@ from companion.report import (
 )
 from companion.sim.plots import plot_flight, plot_mahalanobis
 from companion.vehicle.pose_buffer import PoseBuffer
+from companion.vehicle.view import height_agl_m
 from companion.vision.camera import CameraModel
-from companion.vision.projection import GeoPose
+from companion.vision.projection import GeoPose, PoseUncertainty
 
 __all__ = ["FrameTimes", "ReplayResult", "load_truth", "replay_log", "replay_run"]
 
@@ -217,13 +218,14 @@ def replay_run(run_dir: Path, out_dir: Path, config: ServiceConfig | None = None
         if "pose" in step:
             lat, lon, alt, height, *q = step["pose"]
             pose = GeoPose(step["boot_t_s"], lat, lon, alt, height, tuple(q))
+            sigma = PoseUncertainty(*step["pose_sigma"]) if "pose_sigma" in step else None
             image_path = run_dir / step["frame"] if redetect and "frame" in step else None
             if image_path is not None and image_path.is_file():
-                record = pipeline.step(_read_image(image_path), pose)
+                record = pipeline.step(_read_image(image_path), pose, sigma)
             else:
                 missing += image_path is not None
                 pixels = np.array(step["pixels"], dtype=np.float64).reshape(-1, 2)
-                record = pipeline.step_detections(pixels, pose)
+                record = pipeline.step_detections(pixels, pose, sigma)
         else:
             record = pipeline.blind(step["boot_t_s"], blind or "blind")
         replay.add(record)
@@ -361,7 +363,8 @@ def replay_log(log_path: Path, frames_path: Path, out_dir: Path, config: Service
                 record = pipeline.blind(t_s, "no pose at the capture time")
             else:
                 pose = GeoPose(t_s, sample.lat_deg, sample.lon_deg, sample.alt_amsl_m,
-                               max(sample.alt_rel_m, 0.0), sample.q_wxyz)
+                               height_agl_m(sample.alt_rel_m, config.pose.camera_rest_height_m),
+                               sample.q_wxyz)
                 record = pipeline.step(np.asarray(image, dtype=np.uint8), pose)
                 used += record.blind is None
             replay.add(record)

@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 
 from companion import mission as ms
 from companion.camera.source import Frame, LatestFrameGrabber, open_source
-from companion.config import ServiceConfig
+from companion.config import PoseConfig, ServiceConfig
 from companion.errors import CompanionError
 from companion.geo import LocalNed
 from companion.notify import Notifier
@@ -60,9 +60,9 @@ from companion.vehicle.mavsdk_link import FlightMode, MavsdkLink, VehicleError
 from companion.vehicle.plausibility import PositionGate
 from companion.vehicle.pose_buffer import GeoPoseSample
 from companion.vehicle.signing import SigningRelay, load_signing_key
-from companion.vehicle.view import VehicleView
+from companion.vehicle.view import Accuracy, VehicleView
 from companion.vision.camera import CameraModel
-from companion.vision.projection import GeoPose
+from companion.vision.projection import GeoPose, PoseUncertainty
 
 __all__ = ["RunResult", "Service", "camera_model"]
 
@@ -124,6 +124,24 @@ async def _set_when(stop: asyncio.Event, wake: asyncio.Event) -> None:
     wake.set()
 
 
+def _tilt_cos(q_wxyz: tuple[float, float, float, float]) -> float:
+    """cos of the angle between the body's down axis and the vertical (roll and pitch)."""
+    _, x, y, _ = q_wxyz
+    return 1.0 - 2.0 * (x * x + y * y)
+
+
+def pose_sigma(floors: PoseConfig, reported: Accuracy) -> PoseUncertainty:
+    """The pose uncertainty a measurement carries: the autopilot's own figures where it gives
+    them, never below the configured floors."""
+    def at_least(floor: float, value: float) -> float:
+        return floor if math.isnan(value) else max(floor, value)
+
+    return PoseUncertainty(at_least(floors.horizontal_std_m, reported.horizontal_std_m),
+                           at_least(floors.vertical_std_m, reported.vertical_std_m),
+                           at_least(floors.attitude_std_deg, reported.attitude_std_deg),
+                           at_least(floors.heading_std_deg, reported.heading_std_deg))
+
+
 def _run_dir(root: Path, now: datetime) -> Path:
     base = root / now.strftime("run-%Y%m%dT%H%M%SZ")
     path, n = base, 1
@@ -176,7 +194,8 @@ class Service:
         m, s = self.config.mission, self.config.search
         return ms.MissionConfig(
             auto_arm_takeoff=m.auto_arm_takeoff, auto_offboard=m.auto_offboard,
-            takeoff_alt_m=s.altitude_m, resume_on_pilot_offboard=m.resume_on_pilot_offboard,
+            arm_retry_s=m.arm_retry_s, takeoff_alt_m=s.altitude_m,
+            resume_on_pilot_offboard=m.resume_on_pilot_offboard,
             end=m.end, sweeps=s.sweeps if s.planner == "lawnmower" else 1,
             time_limit_s=m.time_limit_s, end_action=m.end_action)
 
@@ -226,8 +245,8 @@ class Service:
             gc.unfreeze()
             self.notifier.stopping()
             self.notifier.close()
-            self.counters["tlog_messages"] = tlog.written
             tlog.close()
+            self.counters["tlog_messages"] = tlog.written
             if self._frames is not None:
                 self.counters["frames_kept"] = self._frames.kept
                 self._frames.close()
@@ -240,8 +259,8 @@ class Service:
         source = open_source(c.source, c.kind)
         grabber = LatestFrameGrabber(source, self.clock).start()
 
-        def record(system_id: int, component_id: int, name: str, fields: dict[str, Any]) -> None:
-            tlog.write(time.time(), system_id, component_id, name, fields)
+        def record(system_id: int, component_id: int, name: str, fields_json: str) -> None:
+            tlog.submit(time.time(), system_id, component_id, name, fields_json)
 
         relay = None
         warm_up = asyncio.get_running_loop().run_in_executor(None, self._warm_up)
@@ -258,6 +277,7 @@ class Service:
                     async with asyncio.TaskGroup() as group:
                         wake = asyncio.Event()  # a control tick is due now, not on schedule
                         self.view.on_mode_change = wake.set
+                        self.view.on_text = self._autopilot_text
                         tasks = [group.create_task(link.run_telemetry(self.view)),
                                  group.create_task(link.run_recording(record)),
                                  group.create_task(_set_when(stop, wake))]
@@ -324,6 +344,10 @@ class Service:
         if self._events is not None:
             self._events.write({"t_s": round(self.clock(), 6), "event": event, **fields})
 
+    def _autopilot_text(self, text: str) -> None:
+        """The autopilot's own words (why it refused an arm, say): into the journal."""
+        self._log(text if text.startswith("autopilot") else f"autopilot: {text}")
+
     def _log(self, line: str) -> None:
         """A line for the operator (the journal) and the run's events."""
         self.announce(line)
@@ -388,10 +412,15 @@ class Service:
             glitch = self.view.gate.refusing_since_s is not None
             return self.pipeline.blind(capture_s, "implausible position (GPS glitch?)" if glitch
                                        else "no pose at the capture time")
-        pose = GeoPose(capture_s, sample.lat_deg, sample.lon_deg, sample.alt_amsl_m,
-                       max(sample.alt_rel_m, 0.0), sample.q_wxyz)  # on the ground: noise < 0
+        height_m, height_source = self.view.height_at(
+            capture_s, sample.alt_rel_m, _tilt_cos(sample.q_wxyz),
+            self.config.pose.camera_rest_height_m)
+        pose = GeoPose(capture_s, sample.lat_deg, sample.lon_deg, sample.alt_amsl_m, height_m,
+                       sample.q_wxyz)
+        sigma = pose_sigma(self.config.pose, self.view.accuracy())
         started = time.perf_counter()
-        record = await loop.run_in_executor(None, self.pipeline.step, frame.image, pose)
+        record = await loop.run_in_executor(None, self.pipeline.step, frame.image, pose, sigma)
+        record.extra["height_source"] = height_source
         self.counters["frames_used"] += record.blind is None
         record.extra["latency_ms"] = round(1e3 * (self.clock() - frame.receive_time_s), 2)
         record.extra["process_ms"] = round(1e3 * (time.perf_counter() - started), 2)
@@ -421,6 +450,7 @@ class Service:
         fresh = (now_s is not None and view.latest_boot_s is not None
                  and now_s - view.latest_boot_s
                  < max(TELEMETRY_STALE_S, TELEMETRY_STALE_WALL_S * self.time_scale))
+        here = None if view.latest_boot_s is None else view.poses.at(view.latest_boot_s)
         state = self.pipeline.state
         confirmed = 0 if state is None else int(state.tracks.confirmed.sum())
         passes = 0
@@ -438,7 +468,9 @@ class Service:
             coverage_passes=passes, confirmed_targets=confirmed,
             expected_targets=self.config.search.expected_targets,
             setpoints_streaming=self._streaming_since_s is not None
-            and self.clock() - self._streaming_since_s >= STREAM_SETTLE_S)
+            and self.clock() - self._streaming_since_s >= STREAM_SETTLE_S,
+            alt_rel_m=None if here is None else here.alt_rel_m,
+            autopilot=ms.Autopilot.ARDUPILOT if view.ardupilot else ms.Autopilot.PX4)
 
     async def _control(self, link: MavsdkLink, stop: asyncio.Event, wake: asyncio.Event) -> None:
         """Tick at the setpoint rate, and at once when `wake` is set (a change of mode)."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import math
 from collections.abc import Iterator
 
 import numpy as np
@@ -45,6 +46,10 @@ class Recorder:
         self.locals: list[tuple[float, ...]] = []
         self.attitudes: list[tuple[float, tuple[float, float, float, float]]] = []
         self.statuses: list[Status] = []
+        self.autopilots: list[int] = []
+        self.accuracies: list[tuple[str, float, float, float, float]] = []
+        self.distances: list[tuple[float, float]] = []
+        self.texts: list[str] = []
         self.changed = asyncio.Event()
 
     def on_position(self, t_s: float, lat_deg: float, lon_deg: float, alt_amsl_m: float,
@@ -63,6 +68,25 @@ class Recorder:
 
     def on_status(self, status: Status) -> None:
         self.statuses.append(status)
+        self.changed.set()
+
+    def on_heartbeat(self, autopilot: int) -> None:
+        self.autopilots.append(autopilot)
+
+    def on_accuracy(self, source: str, horizontal_std_m: float, vertical_std_m: float,
+                    attitude_std_deg: float = math.nan, heading_std_deg: float = math.nan) -> None:
+        self.accuracies.append((source, horizontal_std_m, vertical_std_m, attitude_std_deg,
+                                heading_std_deg))
+        self.changed.set()
+
+    def on_distance(self, t_s: float, distance_m: float, min_m: float, max_m: float) -> None:
+        self.distances.append((t_s, distance_m))
+
+    def on_terrain_height(self, t_s: float, height_m: float) -> None:
+        self.distances.append((t_s, height_m))
+
+    def on_autopilot_text(self, text: str) -> None:
+        self.texts.append(text)
         self.changed.set()
 
     async def until(self, condition: object, timeout_s: float) -> None:

@@ -6,11 +6,16 @@ service parsed messages (MavlinkDirect: name, sender, fields as JSON), not raw b
 `TlogWriter.write` encodes each message again with pymavlink's dialect, as MAVLink 2 from its
 original system and component. Every record is flushed as it is written: a crash loses at most
 the record being written, and pymavlink's reader stops cleanly at a half-written last one.
+`submit` hands a message over to the writer's own thread, which parses, encodes and writes it,
+so the service's event loop never waits for the disk or the encoder.
 """
 
 from __future__ import annotations
 
+import json
+import queue
 import struct
+import threading
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -40,6 +45,27 @@ class TlogWriter:
         self._mav = mavlink.MAVLink(None)
         self.written = 0
         self.skipped = 0  # messages the dialect does not know or whose fields do not fit
+        self._queue: queue.SimpleQueue[tuple[float, int, int, str, str] | None] = (
+            queue.SimpleQueue())
+        self._thread: threading.Thread | None = None
+
+    def submit(self, time_unix_s: float, system_id: int, component_id: int, name: str,
+               fields_json: str) -> None:
+        """Queue one received message (its fields as JSON) for the writer thread."""
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._drain, name="tlog", daemon=True)
+            self._thread.start()
+        self._queue.put((time_unix_s, system_id, component_id, name, fields_json))
+
+    def _drain(self) -> None:
+        while (item := self._queue.get()) is not None:
+            t_s, system_id, component_id, name, fields_json = item
+            try:
+                fields = json.loads(fields_json)
+            except ValueError:
+                self.skipped += 1
+                continue
+            self.write(t_s, system_id, component_id, name, fields)
 
     def write(self, time_unix_s: float, system_id: int, component_id: int, name: str,
               fields: dict[str, Any]) -> None:
@@ -63,5 +89,9 @@ class TlogWriter:
         self.written += 1
 
     def close(self) -> None:
-        """Close the file."""
+        """Write what is queued, then close the file."""
+        if self._thread is not None:
+            self._queue.put(None)
+            self._thread.join()
+            self._thread = None
         self._fh.close()

@@ -32,6 +32,7 @@ from mavsdk.logging import LogLevel, log_subscribe
 from mavsdk.plugins.mavlink_direct.mavlink_direct import MavlinkMessage
 
 from companion.errors import CompanionError
+from companion.vehicle.events import describe_event
 
 __all__ = ["ONBOARD_COMPONENT_ID", "FlightMode", "MavsdkLink", "Status", "TelemetrySink",
            "VehicleError", "route_mavsdk_log"]
@@ -72,6 +73,18 @@ class TelemetrySink(Protocol):
 
     def on_status(self, status: Status) -> None: ...
 
+    def on_heartbeat(self, autopilot: int) -> None: ...
+
+    def on_accuracy(self, source: str, horizontal_std_m: float, vertical_std_m: float,
+                    attitude_std_deg: float = math.nan,
+                    heading_std_deg: float = math.nan) -> None: ...
+
+    def on_distance(self, t_s: float, distance_m: float, min_m: float, max_m: float) -> None: ...
+
+    def on_terrain_height(self, t_s: float, height_m: float) -> None: ...
+
+    def on_autopilot_text(self, text: str) -> None: ...
+
 
 def route_mavsdk_log(sink: Callable[[str], None]) -> None:
     """Send MAVSDK's warnings and errors to sink as plain lines; drop its debug and info."""
@@ -81,6 +94,23 @@ def route_mavsdk_log(sink: Callable[[str], None]) -> None:
         return True  # not MAVSDK's own coloured output
 
     log_subscribe(forward)
+
+
+MAV_SENSOR_ROTATION_PITCH_270 = 25  # a DISTANCE_SENSOR that looks down
+MM = 1e-3
+CM = 1e-2
+TERRAIN_UNKNOWN_M = -1000.0  # ALTITUDE.altitude_terrain below this: unknown
+ODOMETRY_VARIANCES = (0, 6, 11, 15, 18, 20)  # x, y, z, roll, pitch, yaw in the 6x6 triangle
+
+
+def _odometry(f: dict[str, Any]) -> tuple[float, float, float, float] | None:
+    """ODOMETRY's pose covariance as 1-sigma horizontal, vertical (m), tilt and heading (deg);
+    None when unknown (a NaN first entry)."""
+    cov = [float(f["pose_covariance"][k]) for k in ODOMETRY_VARIANCES]
+    if not math.isfinite(cov[0]) or min(cov) < 0.0:
+        return None
+    return (math.sqrt(max(cov[0], cov[1])), math.sqrt(cov[2]),
+            math.degrees(math.sqrt(max(cov[3], cov[4]))), math.degrees(math.sqrt(cov[5])))
 
 
 def _fields(message: Any) -> dict[str, Any]:
@@ -126,7 +156,9 @@ class MavsdkLink:
                              (t.set_rate_position_velocity_ned, rate_hz),
                              (t.set_rate_attitude_quaternion, rate_hz),
                              (t.set_rate_health, 2.0), (t.set_rate_in_air, 2.0),
-                             (t.set_rate_battery, 1.0)):
+                             (t.set_rate_battery, 1.0), (t.set_rate_gps_info, 2.0),
+                             (t.set_rate_distance_sensor, rate_hz),
+                             (t.set_rate_altitude, rate_hz)):
             with contextlib.suppress(Exception):  # an autopilot may refuse a rate: keep its own
                 await set_rate(hz)
 
@@ -139,23 +171,55 @@ class MavsdkLink:
 
     async def run_telemetry(self, sink: TelemetrySink) -> None:
         """Deliver telemetry to sink until cancelled."""
-        async with asyncio.TaskGroup() as group:
-            group.create_task(self._messages("GLOBAL_POSITION_INT", lambda f: sink.on_position(
+        def gps(f: dict[str, Any]) -> None:
+            if f.get("h_acc") and f.get("v_acc"):  # 0: the receiver does not say
+                sink.on_accuracy("gps", f["h_acc"] * MM, f["v_acc"] * MM)
+
+        def odometry(f: dict[str, Any]) -> None:
+            sigma = _odometry(f)
+            if sigma is not None:
+                sink.on_accuracy("odometry", *sigma)
+
+        def distance(f: dict[str, Any]) -> None:
+            if f["orientation"] == MAV_SENSOR_ROTATION_PITCH_270:
+                sink.on_distance(f["time_boot_ms"] / 1e3, f["current_distance"] * CM,
+                                 f["min_distance"] * CM, f["max_distance"] * CM)
+
+        def altitude(f: dict[str, Any]) -> None:
+            if f["altitude_terrain"] > TERRAIN_UNKNOWN_M:
+                sink.on_terrain_height(f["time_usec"] / 1e6, f["altitude_terrain"])
+
+        handlers: dict[str, Callable[[dict[str, Any]], None]] = {
+            "GLOBAL_POSITION_INT": lambda f: sink.on_position(
                 f["time_boot_ms"] / 1e3, f["lat"] / 1e7, f["lon"] / 1e7, f["alt"] / 1e3,
-                f["relative_alt"] / 1e3, (f["vx"] / 100.0, f["vy"] / 100.0))))
-            group.create_task(self._messages("LOCAL_POSITION_NED", lambda f: sink.on_local_position(
-                f["time_boot_ms"] / 1e3, f["x"], f["y"], f["z"])))
-            group.create_task(self._messages("ATTITUDE_QUATERNION", lambda f: sink.on_attitude(
-                f["time_boot_ms"] / 1e3, (f["q1"], f["q2"], f["q3"], f["q4"]))))
+                f["relative_alt"] / 1e3, (f["vx"] / 100.0, f["vy"] / 100.0)),
+            "LOCAL_POSITION_NED": lambda f: sink.on_local_position(
+                f["time_boot_ms"] / 1e3, f["x"], f["y"], f["z"]),
+            "ATTITUDE_QUATERNION": lambda f: sink.on_attitude(
+                f["time_boot_ms"] / 1e3, (f["q1"], f["q2"], f["q3"], f["q4"])),
+            "HEARTBEAT": lambda f: sink.on_heartbeat(int(f["autopilot"])),
+            "GPS_RAW_INT": gps,
+            "ESTIMATOR_STATUS": lambda f: sink.on_accuracy(
+                "estimator", f["pos_horiz_accuracy"], f["pos_vert_accuracy"]),
+            "ODOMETRY": odometry,
+            "DISTANCE_SENSOR": distance,
+            "ALTITUDE": altitude,
+            "STATUSTEXT": lambda f: sink.on_autopilot_text(str(f["text"]).rstrip("\x00")),
+            "EVENT": lambda f: sink.on_autopilot_text(
+                describe_event(int(f["id"]), list(f.get("arguments") or []))),
+        }
+        async with asyncio.TaskGroup() as group:
+            for name, handler in handlers.items():
+                group.create_task(self._messages(name, handler))
             group.create_task(self._status_updates(sink))
 
-    async def run_recording(self, record: Callable[[int, int, str, dict[str, Any]], None]
-                            ) -> None:
-        """Every message received, as (system, component, name, fields), until cancelled."""
+    async def run_recording(self, record: Callable[[int, int, str, str], None]) -> None:
+        """Every message received, as (system, component, name, fields as JSON), until
+        cancelled; record must be quick (it runs on the event loop)."""
         async with contextlib.aclosing(self.direct.subscribe_message("")) as messages:
             async for message in messages:
                 record(message.system_id, message.component_id, message.message_name,
-                       _fields(message))
+                       message.fields_json)
 
     async def _messages(self, name: str, deliver: Callable[[dict[str, Any]], None]) -> None:
         async with contextlib.aclosing(self.direct.subscribe_message(name)) as messages:

@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -27,11 +28,32 @@ from companion.vehicle.mavsdk_link import Status
 from companion.vehicle.plausibility import PositionGate
 from companion.vehicle.pose_buffer import PoseBuffer
 
-__all__ = ["VehicleView"]
+__all__ = ["Accuracy", "VehicleView", "height_agl_m"]
 
 ORIGIN_SAMPLES = 25  # median over the first this many global/local pairs
 CLOCK_SAMPLES = 200
 PAIR_TOLERANCE_S = 0.02
+HEIGHT_SAMPLES = 100  # rangefinder / terrain heights kept (10 s at 10 Hz)
+HEIGHT_WITHIN_S = 0.3  # a height this close in time to a frame's capture is used for it
+ACCURACY_FRESH_S = 5.0  # an accuracy report older than this (receive clock) is not used
+MAV_AUTOPILOT_ARDUPILOTMEGA = 3
+ACCURACY_SOURCES = ("odometry", "estimator", "gps")  # the better first
+
+
+@dataclass(frozen=True, slots=True)
+class Accuracy:
+    """The autopilot's own 1-sigma figures for its estimate; NaN where it says nothing."""
+
+    horizontal_std_m: float = math.nan
+    vertical_std_m: float = math.nan
+    attitude_std_deg: float = math.nan
+    heading_std_deg: float = math.nan
+
+
+def height_agl_m(alt_rel_m: float, rest_height_m: float) -> float:
+    """Height above ground from the relative altitude (zero is the resting vehicle) and the
+    camera's height above ground at rest; never below the ground."""
+    return max(alt_rel_m + rest_height_m, 0.0)
 
 
 class VehicleView:
@@ -51,6 +73,12 @@ class VehicleView:
         self._locals: deque[tuple[float, float, float, float]] = deque(maxlen=50)
         self._origins: deque[tuple[float, float, float]] = deque(maxlen=ORIGIN_SAMPLES)
         self._offsets: deque[float] = deque(maxlen=CLOCK_SAMPLES)
+        self.ardupilot = False  # from the heartbeat: ArduPilot (else PX4 rules)
+        self._accuracy: dict[str, tuple[float, Accuracy]] = {}  # source: (received, figures)
+        self._ranges: deque[tuple[float, float]] = deque(maxlen=HEIGHT_SAMPLES)
+        self._terrain: deque[tuple[float, float]] = deque(maxlen=HEIGHT_SAMPLES)
+        self.texts: deque[str] = deque(maxlen=50)  # the autopilot's own messages, newest last
+        self.on_text: Callable[[str], None] = lambda _: None
 
     # -- the sink ----------------------------------------------------------------------------
 
@@ -118,7 +146,62 @@ class VehicleView:
                                                                     status.armed):
             self.on_mode_change()
 
+    def on_heartbeat(self, autopilot: int) -> None:
+        """The autopilot's HEARTBEAT: which firmware family it is."""
+        self.ardupilot = autopilot == MAV_AUTOPILOT_ARDUPILOTMEGA
+
+    def on_accuracy(self, source: str, horizontal_std_m: float, vertical_std_m: float,
+                    attitude_std_deg: float = math.nan, heading_std_deg: float = math.nan) -> None:
+        """The autopilot's own uncertainty figures from one source (odometry, estimator, gps)."""
+        values = (horizontal_std_m, vertical_std_m, attitude_std_deg, heading_std_deg)
+        if source not in ACCURACY_SOURCES or any(v < 0.0 for v in values if not math.isnan(v)):
+            return
+        if not all(math.isfinite(v) or math.isnan(v) for v in values):
+            return
+        self._accuracy[source] = (self._clock(), Accuracy(*values))
+
+    def on_distance(self, t_s: float, distance_m: float, min_m: float, max_m: float) -> None:
+        """A downward rangefinder's reading; out of its range it says nothing."""
+        if all(map(math.isfinite, (t_s, distance_m))) and min_m <= distance_m <= max_m:
+            self._ranges.append((t_s, distance_m))
+
+    def on_terrain_height(self, t_s: float, height_m: float) -> None:
+        """The autopilot's height above the terrain under it."""
+        if math.isfinite(t_s) and math.isfinite(height_m) and height_m >= 0.0:
+            self._terrain.append((t_s, height_m))
+
+    def on_autopilot_text(self, text: str) -> None:
+        """A STATUSTEXT or event of the autopilot's (a refusal's reason, say)."""
+        self.texts.append(text)
+        self.on_text(text)
+
     # -- what it knows -----------------------------------------------------------------------
+
+    def accuracy(self) -> Accuracy:
+        """The autopilot's latest figures, each from the best source that gave it recently."""
+        now = self._clock()
+        best = [math.nan] * 4
+        for source in reversed(ACCURACY_SOURCES):
+            received_s, figures = self._accuracy.get(source, (-math.inf, Accuracy()))
+            if now - received_s > ACCURACY_FRESH_S:
+                continue
+            for k, value in enumerate((figures.horizontal_std_m, figures.vertical_std_m,
+                                       figures.attitude_std_deg, figures.heading_std_deg)):
+                if not math.isnan(value):
+                    best[k] = value
+        return Accuracy(*best)
+
+    def height_at(self, t_s: float, alt_rel_m: float, tilt_cos: float,
+                  rest_height_m: float) -> tuple[float, str]:
+        """The camera's height above ground at t_s and where it came from: a downward
+        rangefinder (its slant range times the cosine of the tilt), else the autopilot's
+        terrain height, else the relative altitude plus the camera's resting height."""
+        for samples, source, scale in ((self._ranges, "rangefinder", tilt_cos),
+                                       (self._terrain, "terrain", 1.0)):
+            near = min(samples, key=lambda s: abs(s[0] - t_s), default=None)
+            if near is not None and abs(near[0] - t_s) <= HEIGHT_WITHIN_S:
+                return near[1] * scale, source
+        return height_agl_m(alt_rel_m, rest_height_m), "altitude"
 
     def _pair(self, lat_deg: float, lon_deg: float, alt_amsl_m: float,
               ned_m: tuple[float, float, float]) -> None:
