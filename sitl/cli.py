@@ -3,6 +3,8 @@
 It prints where to connect (the MAVLink UDP port a client listens on, as for PX4 SITL, and the
 camera's MJPEG URL) on standard output, a status line every few simulated seconds on standard
 error, and stops cleanly on Ctrl-C or SIGTERM (or after --duration simulated seconds).
+With --external-autopilot URL no mock autopilot runs: the camera renders the scenario from the
+pose of a real autopilot SITL read at URL (`sitl.external`).
 Exit status: 0 when stopped, 2 for a bad scenario, fault plan or arguments, 1 for anything else.
 """
 
@@ -18,8 +20,9 @@ from pathlib import Path
 from companion.cli import run_command, shipped_scenarios
 from companion.errors import ConfigError
 from companion.sim.scenario import load_scenario
+from sitl.external import URL_KEY, run_external
 from sitl.faults import parse_faults
-from sitl.runner import Sitl
+from sitl.runner import PX4_OFFBOARD_PORT, Sitl
 
 EXIT_OK = 0
 
@@ -67,12 +70,12 @@ def build_parser() -> argparse.ArgumentParser:
                "See sitl/faults.py for every item.",
     )
     parser.add_argument("scenario", help="a scenario TOML file, or a shipped scenario's name")
-    parser.add_argument("--speedup", type=_positive, default=1.0,
+    parser.add_argument("--speedup", type=_positive, default=None,
                         help="simulated seconds per wall second (default 1)")
     parser.add_argument("--faults", default="", help="fault plan (see below)")
     parser.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
     parser.add_argument("--host", default="127.0.0.1", help="address to serve on")
-    parser.add_argument("--mavlink-port", type=_port, default=14540,
+    parser.add_argument("--mavlink-port", type=_port, default=None,
                         help="UDP port the MAVLink client listens on (MAVSDK: "
                              "udpin://HOST:PORT; default 14540 as PX4 SITL)")
     parser.add_argument("--gcs-port", type=_port, default=None,
@@ -83,6 +86,11 @@ def build_parser() -> argparse.ArgumentParser:
                         help="stop after this many simulated seconds")
     parser.add_argument("--status-every", type=float, default=10.0,
                         help="simulated seconds between status lines (0: none)")
+    parser.add_argument(URL_KEY, metavar="URL", default=None,
+                        help="no mock autopilot: render from the pose of an ArduPilot or PX4 "
+                             "SITL read over MAVLink at URL (loopback, e.g. "
+                             "udpin:127.0.0.1:14560); --duration and --status-every are then "
+                             "wall seconds")
     return parser
 
 
@@ -99,11 +107,22 @@ def run(args: argparse.Namespace, stop: threading.Event) -> int:
     """Run the mission the arguments describe until `stop` is set or the duration is over."""
     scenario = load_scenario(resolve_mission(args.scenario), seed=args.seed)
     faults = parse_faults(args.faults)
-    sitl = Sitl(scenario, speedup=args.speedup, faults=faults, host=args.host,
-                mavlink_port=args.mavlink_port, gcs_port=args.gcs_port,
+    if args.external_autopilot is not None:
+        for flag, value in (("--speedup", args.speedup), ("--mavlink-port", args.mavlink_port),
+                            ("--gcs-port", args.gcs_port)):
+            if value is not None:
+                raise ConfigError(flag, f"not with {URL_KEY}: there is no mock autopilot, and "
+                                        "the camera runs on the external autopilot's clock")
+        return run_external(scenario, args.external_autopilot, stop, faults=faults,
+                            host=args.host, camera_port=args.camera_port,
+                            duration_s=args.duration, status_every_s=args.status_every)
+    speedup = 1.0 if args.speedup is None else args.speedup
+    mavlink_port = PX4_OFFBOARD_PORT if args.mavlink_port is None else args.mavlink_port
+    sitl = Sitl(scenario, speedup=speedup, faults=faults, host=args.host,
+                mavlink_port=mavlink_port, gcs_port=args.gcs_port,
                 camera_port=args.camera_port)
     with sitl:
-        print(f"scenario {scenario.name} ({scenario.vehicle.flavour}), speed-up {args.speedup:g}x")
+        print(f"scenario {scenario.name} ({scenario.vehicle.flavour}), speed-up {speedup:g}x")
         print(f"mavlink {sitl.mavlink_url}")
         if args.gcs_port is not None:
             print(f"gcs udpin://{args.host}:{args.gcs_port}")
