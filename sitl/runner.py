@@ -45,7 +45,8 @@ CLOCK_JUMP_S = 1.0  # a camera clock that goes back by more than this restarts t
 
 
 def autopilot_config(scenario: Scenario) -> AutopilotConfig:
-    """The mock autopilot the scenario's [vehicle] table describes, booting at robot.start."""
+    """The mock autopilot the scenario's [vehicle] table describes, booting at robot.start
+    (the keys left out: the flavour's measured values, chosen by the autopilot)."""
     v = scenario.vehicle
     x_m, y_m = scenario.robot.start_xy
     return AutopilotConfig(
@@ -58,8 +59,19 @@ def autopilot_config(scenario: Scenario) -> AutopilotConfig:
         offboard_loss_timeout_s=v.offboard_loss_timeout_s,
         offboard_failsafe=Failsafe(v.offboard_failsafe),
         armable_after_s=v.armable_after_s,
+        gps_fix_after_s=v.gps_fix_after_s,
+        arm_unstable_s=v.arm_unstable_s,
+        takeoff_spoolup_s=v.takeoff_spoolup_s,
+        rel_alt_bias_m=v.rel_alt_bias_m,
         position_noise_m=v.position_noise_m,
         gps_drift_m_per_sqrt_s=v.gps_drift_m_per_sqrt_s,
+        heading_error_deg=v.heading_error_deg,
+        attitude_error_deg=v.attitude_error_deg,
+        position_error_m=v.position_error_m,
+        height_error_m=v.height_error_m,
+        error_time_constant_s=v.error_time_constant_s,
+        rangefinder=v.rangefinder,
+        rangefinder_max_m=v.rangefinder_max_m,
         battery_flight_s=v.battery_flight_s,
         battery_low_percent=v.battery_low_percent,
         limits=VehicleLimits(max_speed_h_m_s=v.max_speed_m_s, max_accel_m_s2=v.max_accel_m_s2,

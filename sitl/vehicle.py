@@ -66,18 +66,25 @@ class VehicleState:
     def quaternion_wxyz(self) -> tuple[float, float, float, float]:
         """Body (FRD) to NED rotation, Hamilton, scalar first (ZYX Euler: yaw, pitch, roll)."""
         roll, pitch = self.roll_pitch_rad()
-        cr, sr = math.cos(roll / 2), math.sin(roll / 2)
-        cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
-        cy, sy = math.cos(self.yaw_rad / 2), math.sin(self.yaw_rad / 2)
-        return (
-            cr * cp * cy + sr * sp * sy,
-            sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy,
-            cr * cp * sy - sr * sp * cy,
-        )
+        return quaternion_from_euler(roll, pitch, self.yaw_rad)
 
 
-def _wrap(angle_rad: float) -> float:
+def quaternion_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float
+                          ) -> tuple[float, float, float, float]:
+    """Body (FRD) to NED rotation of ZYX Euler angles, Hamilton, scalar first."""
+    cr, sr = math.cos(roll_rad / 2), math.sin(roll_rad / 2)
+    cp, sp = math.cos(pitch_rad / 2), math.sin(pitch_rad / 2)
+    cy, sy = math.cos(yaw_rad / 2), math.sin(yaw_rad / 2)
+    return (
+        cr * cp * cy + sr * sp * sy,
+        sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy,
+        cr * cp * sy - sr * sp * cy,
+    )
+
+
+def wrap_rad(angle_rad: float) -> float:
+    """The angle in [-pi, pi)."""
     return (angle_rad + math.pi) % (2.0 * math.pi) - math.pi
 
 
@@ -116,7 +123,7 @@ def step(
     yaw = state.yaw_rad
     if target.yaw_rad is not None and not on_ground:
         max_turn = math.radians(limits.max_yaw_rate_deg_s) * dt_s
-        yaw = _wrap(yaw + float(np.clip(_wrap(target.yaw_rad - yaw), -max_turn, max_turn)))
+        yaw = wrap_rad(yaw + float(np.clip(wrap_rad(target.yaw_rad - yaw), -max_turn, max_turn)))
     return VehicleState(position, velocity, (velocity - state.velocity_ned) / dt_s, yaw,
                         on_ground)
 

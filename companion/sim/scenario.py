@@ -236,12 +236,25 @@ class VehicleSpec:
     rtl_altitude_m: float
     offboard_loss_timeout_s: float
     offboard_failsafe: Literal["hold", "land", "rtl"]
-    armable_after_s: float
+    # None: the flavour's measured value (sitl.autopilot.FLAVOUR_DEFAULTS), chosen at start-up,
+    # so that a spec whose flavour is replaced behaves as the other firmware.
+    armable_after_s: float | None
+    gps_fix_after_s: float | None
+    arm_unstable_s: float | None
+    takeoff_spoolup_s: float | None
+    rel_alt_bias_m: float | None
     position_noise_m: float
     gps_drift_m_per_sqrt_s: float
+    heading_error_deg: float
+    attitude_error_deg: float
+    position_error_m: float
+    height_error_m: float
+    error_time_constant_s: float
     battery_flight_s: float
     battery_low_percent: float
     ekf_origin_offset_m: tuple[float, float]
+    rangefinder: bool
+    rangefinder_max_m: float
 
 
 @dataclass(frozen=True, slots=True)
@@ -459,12 +472,41 @@ _SECTIONS: dict[str, tuple[Key, ...]] = {
              "SITL: setpoint silence before the offboard failsafe (PX4 COM_OF_LOSS_T), seconds"),
         Key("offboard_failsafe", "offboard_failsafe", Choice("hold", "land", "rtl"), "hold",
              "SITL: what PX4 does when offboard setpoints stop (COM_OBL_RC_ACT)"),
-        Key("armable_after_s", "armable_after_s", Float(ge=0), 2.0,
-             "SITL: estimator settling after boot before arming is allowed, seconds"),
+        Key("armable_after_s", "armable_after_s", Float(ge=0),
+             Derived("40 for ardupilot, 2 for px4 (real PX4 SIH: 33-37)"),
+             "SITL: estimator warm-up after boot before arming is allowed, seconds"),
+        Key("gps_fix_after_s", "gps_fix_after_s", Float(ge=0),
+             Derived("25 for ardupilot, 0 for px4, never after `vehicle.armable_after_s`"),
+             "SITL: GPS fix after boot, seconds; before it the position reads lat = lon = 0, "
+             "GPS_RAW_INT has no fix, SYS_STATUS no GPS health and there is no local position"),
+        Key("arm_unstable_s", "arm_unstable_s", Float(ge=0),
+             Derived("3 for px4 with its own warm-up, 0 when `vehicle.armable_after_s` is "
+                     "given; 0 for ardupilot"),
+             "SITL: seconds after the warm-up during which ARM is TEMPORARILY_REJECTED "
+             "(\"horizontal/vertical velocity unstable\", PX4: as an EVENT); 0 = never"),
+        Key("takeoff_spoolup_s", "takeoff_spoolup_s", Float(ge=0),
+             Derived("1.75 for ardupilot, 0 for px4"),
+             "SITL: motor spool-up from NAV_TAKEOFF until the vehicle leaves the ground, seconds"),
+        Key("rel_alt_bias_m", "rel_alt_bias_m", Float(ge=-10, le=10),
+             Derived("0.25 for ardupilot, 0 for px4"),
+             "SITL: reported height minus true height, metres (GLOBAL_POSITION_INT alt and "
+             "relative_alt, LOCAL_POSITION_NED z); the vehicle flies that much lower"),
         Key("position_noise_m", "position_noise_m", Float(ge=0), 0.0,
              "SITL: white noise on the reported position, metres per axis"),
         Key("gps_drift_m_per_sqrt_s", "gps_drift_m_per_sqrt_s", Float(ge=0), 0.0,
              "SITL: random walk of the reported position, m/sqrt(s)"),
+        Key("heading_error_deg", "heading_error_deg", Float(ge=0, le=90), 0.0,
+             "SITL: 1-sigma of the slowly varying heading estimate error, degrees (measured: "
+             "PX4 SIH 1-12 off, ArduPilot within 0.6)"),
+        Key("attitude_error_deg", "attitude_error_deg", Float(ge=0, le=30), 0.0,
+             "SITL: 1-sigma of the roll and pitch estimate errors, degrees (measured: PX4 1-2)"),
+        Key("position_error_m", "position_error_m", Float(ge=0, le=100), 0.0,
+             "SITL: 1-sigma of the north and east estimate errors, metres (measured: PX4 "
+             "median 0.13-0.25, ArduPilot about 0.02)"),
+        Key("height_error_m", "height_error_m", Float(ge=0, le=100), 0.0,
+             "SITL: 1-sigma of the height estimate error, metres (measured: PX4 up to 1.8)"),
+        Key("error_time_constant_s", "error_time_constant_s", Float(gt=0), 30.0,
+             "SITL: correlation time of the estimate errors (Gauss-Markov), seconds"),
         Key("battery_flight_s", "battery_flight_s", Float(gt=0), 1800.0,
              "SITL: flight time on a full battery, seconds"),
         Key("battery_low_percent", "battery_low_percent", Float(ge=0, le=100), 20.0,
@@ -472,6 +514,11 @@ _SECTIONS: dict[str, tuple[Key, ...]] = {
         Key("ekf_origin_offset_m", "ekf_origin_offset_m", Pair(Float()), [4.0, -3.0],
              "SITL, ArduPilot: EKF origin minus home, [north, east] metres (its local NED is "
              "about the EKF origin)"),
+        Key("rangefinder", "rangefinder", Bool(), False,
+             "SITL: a downward rangefinder (DISTANCE_SENSOR: PX4 at 10 Hz, ArduPilot in EXTRA3 "
+             "or on request)"),
+        Key("rangefinder_max_m", "rangefinder_max_m", Float(gt=0, le=1000), 40.0,
+             "SITL: the rangefinder's range, metres"),
     ),
 }
 
@@ -498,6 +545,10 @@ _CROSS_KEY_RULES = (
     "targets; it is not read for empty and explicit.",
     '`belief.kind = "explicit"` requires `belief.components`; `components` given with another '
     "kind is an error.",
+    "`vehicle.armable_after_s`, `gps_fix_after_s`, `arm_unstable_s`, `takeoff_spoolup_s` and "
+    "`rel_alt_bias_m` left out take `vehicle.flavour`'s measured values when the SITL starts; "
+    "`armable_after_s` given turns PX4's velocity-unstable refusals off unless `arm_unstable_s` "
+    "is given too, and the GPS fix then comes no later than it.",
     "An integer key given a float (`3.0`) or a boolean is an error; a number key accepts integers.",
     "Numbers must be finite (no `nan`, `inf`).",
 )
@@ -723,11 +774,14 @@ def load_scenario(path: str | Path, seed: int | None = None) -> Scenario:
 
 
 def _dump_table(spec: object, keys: Sequence[Key]) -> dict[str, Any]:
-    return {k.leaf: k.kind.dump(getattr(spec, k.field)) for k in keys if k.stored}
+    """The stored keys' values; a None (a [vehicle] flavour default) is left out."""
+    return {k.leaf: k.kind.dump(getattr(spec, k.field)) for k in keys
+            if k.stored and getattr(spec, k.field) is not None}
 
 
 def scenario_to_dict(s: Scenario) -> dict[str, Any]:
-    """The scenario as plain TOML data with every key spelled out; parse_scenario reads it back."""
+    """The scenario as plain TOML data with every key spelled out (but the [vehicle] flavour
+    defaults left to the flavour); parse_scenario reads it back."""
     out = _dump_table(s, _TOP)
     for section, keys in _SECTIONS.items():
         out[section] = _dump_table(getattr(s, section), keys)
