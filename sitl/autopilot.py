@@ -70,6 +70,7 @@ IN_AIR_HEIGHT_M = 0.2  # the landed state says "in air" once this high above the
 MANUAL_CONTROL_FRESH_S = 1.0  # PX4: POSCTL and ALTCTL need MANUAL_CONTROL this recent
 ACCURACY_FLOOR_M = 0.02  # the smallest position uncertainty reported
 ACCURACY_FLOOR_DEG = 0.1  # the smallest attitude uncertainty reported
+NO_FIX_ACCURACY_M = 1000.0  # ESTIMATOR_STATUS pos_horiz_accuracy before the GPS fix
 RANGEFINDER_MIN_M = 0.1  # DISTANCE_SENSOR min_distance
 RANGEFINDER_NOISE_M = 0.01  # white noise of a rangefinder reading
 UINT16_UNKNOWN = 0xFFFF  # GPS_RAW_INT eph, epv, cog: not known
@@ -1078,8 +1079,8 @@ class MockAutopilot:
                 flags |= mavlink.ESTIMATOR_POS_VERT_AGL
             self._send(m.estimator_status_encode(
                 t_us, flags, 0.1, 0.1 if fix else 0.0, 0.1, 0.05,
-                0.1 if self.config.rangefinder else 0.0, 0.0, h_sigma_m if fix else 0.0,
-                v_sigma_m))
+                0.1 if self.config.rangefinder else 0.0, 0.0,
+                h_sigma_m if fix else NO_FIX_ACCURACY_M, v_sigma_m))
         elif msg_id == mavlink.MAVLINK_MSG_ID_ODOMETRY and fix:
             pos = self._reported_ned(rng=self._odometry_rng) - self._local_origin
             roll, pitch, yaw = self._reported_attitude()

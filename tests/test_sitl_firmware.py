@@ -356,6 +356,26 @@ def test_px4_arm_is_temporarily_rejected_right_after_healthy_with_events_not_tex
     assert not _of(got, "STATUSTEXT") and not px4.statustexts  # PX4: no text on the API link
 
 
+def test_px4_before_its_gps_fix_has_no_position_and_says_why_it_will_not_arm(
+        client: Client, started: Callable[..., MockAutopilot]) -> None:
+    px4 = started(client, 5.0, gps_fix_after_s=3.0, arm_unstable_s=0.0)
+    result, got = _command(client, ARM, 1)
+    assert result == DENIED and px4.events_sent == [events.EVENT_NO_GPS_FIX]
+    assert [m.id for m in _of(got, "EVENT")] == [events.EVENT_NO_GPS_FIX]
+    got += _record_until(client, lambda m: m.get_type() == "ODOMETRY")
+    odometry = got.pop()
+    assert odometry.time_usec >= 3_000_000
+    early = _sent_before(got, 2.9)
+    assert not {"ODOMETRY", "LOCAL_POSITION_NED"} & {m.get_type() for m in early}
+    assert all((m.lat, m.lon, m.relative_alt) == (0, 0, 0)
+               for m in _of(early, "GLOBAL_POSITION_INT"))
+    status = _of(early, "ESTIMATOR_STATUS")
+    assert status and all(m.flags & mavlink.ESTIMATOR_CONST_POS_MODE
+                          and not m.flags & mavlink.ESTIMATOR_POS_HORIZ_ABS
+                          and m.pos_horiz_accuracy >= 100.0 for m in status)
+    assert client.command(ARM, 1).result == ACCEPTED
+
+
 def test_px4_arms_at_once_without_the_transient(client: Client,
                                                 started: Callable[..., MockAutopilot]) -> None:
     started(client, 5.0, arm_unstable_s=0.0)
