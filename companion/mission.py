@@ -142,12 +142,12 @@ class MissionConfig:
     sweeps: int = 1
     time_limit_s: float = 900.0
     end_action: Literal["hold", "land", "rtl"] = "land"
-    arm_timeout_s: float = 20.0  # a refused arm is asked again every 2 s for this long
+    arm_retry_s: float = 20.0  # a refused arm is asked again every 2 s for this long
     takeoff_timeout_s: float = 60.0
 
     def __post_init__(self) -> None:
         """Check every value once."""
-        for key in ("takeoff_alt_m", "time_limit_s", "arm_timeout_s", "takeoff_timeout_s"):
+        for key in ("takeoff_alt_m", "time_limit_s", "arm_retry_s", "takeoff_timeout_s"):
             value: object = getattr(self, key)
             if isinstance(value, bool) or not (
                 isinstance(value, int | float) and math.isfinite(value) and value > 0
@@ -326,10 +326,10 @@ def _searching(m: Mission, i: MissionInputs, t_s: float) -> tuple[Mission, list[
 
 def _pilot_has_control(m: Mission, i: MissionInputs, t_s: float) -> tuple[Mission, list[Command]]:
     healthy = i.health_ok and i.position_ok and not i.battery_low
-    if not (healthy and m.config.resume_on_pilot_offboard):
+    flying = i.armed and i.in_air
+    if not (healthy and flying and m.config.resume_on_pilot_offboard):  # landed: nothing to hold
         return (dataclasses.replace(m, stream=None), [_STOP]) if m.stream else (m, [])
-    if i.flight_mode is FlightMode.OFFBOARD and (
-            m.stream is Stream.HOLD_HERE or (m.mode_fresh and i.armed and i.in_air)):
+    if i.flight_mode is FlightMode.OFFBOARD and (m.stream is Stream.HOLD_HERE or m.mode_fresh):
         return _start_search(m, t_s, "pilot chose offboard: searching")
     if m.stream is None and i.flight_mode is not FlightMode.OFFBOARD and not i.setpoints_streaming:
         return dataclasses.replace(m, stream=Stream.HOLD_HERE), [_start(Stream.HOLD_HERE)]
@@ -416,7 +416,7 @@ def advance(mission: Mission, inputs: MissionInputs, t_s: float) -> tuple[Missio
     if m.state is State.ARMING:
         if i.armed:
             return _takeoff(m, i, t_s, f"armed: taking off to {cfg.takeoff_alt_m:g} m")
-        if t_s - m.since_s >= cfg.arm_timeout_s:
+        if t_s - m.since_s >= cfg.arm_retry_s:
             return _enter_ready(m, i, t_s, "arming failed: pilot's turn", Severity.WARNING)
         if t_s - m.arm_asked_s >= ARM_RETRY_EVERY_S:  # PX4 refuses for a while after healthy
             arm = Command(CommandKind.ARM)

@@ -56,6 +56,7 @@ from companion.record.rotation import make_room
 from companion.record.tlog import TlogWriter
 from companion.report import TrackRecord, confirmed_tracks, write_csv, write_geojson
 from companion.sim.plots import plot_flight
+from companion.vehicle.events import UNKNOWN_PREFIX
 from companion.vehicle.mavsdk_link import FlightMode, MavsdkLink, VehicleError
 from companion.vehicle.plausibility import PositionGate
 from companion.vehicle.pose_buffer import GeoPoseSample
@@ -276,7 +277,7 @@ class Service:
                 try:
                     async with asyncio.TaskGroup() as group:
                         wake = asyncio.Event()  # a control tick is due now, not on schedule
-                        self.view.on_mode_change = wake.set
+                        self.view.on_mode_change = lambda: self._mode_event(wake)
                         self.view.on_text = self._autopilot_text
                         tasks = [group.create_task(link.run_telemetry(self.view)),
                                  group.create_task(link.run_recording(record)),
@@ -344,9 +345,21 @@ class Service:
         if self._events is not None:
             self._events.write({"t_s": round(self.clock(), 6), "event": event, **fields})
 
+    def _mode_event(self, wake: asyncio.Event) -> None:
+        """Each flight mode and arming state the autopilot reports, logged when it was seen;
+        the control loop runs at once."""
+        st = self.view.status
+        if st is not None:
+            self._event("mode", mode=st.flight_mode.name, armed=st.armed)
+        wake.set()
+
     def _autopilot_text(self, text: str) -> None:
-        """The autopilot's own words (why it refused an arm, say): into the journal."""
-        self._log(text if text.startswith("autopilot") else f"autopilot: {text}")
+        """The autopilot's own words (why it refused an arm, say): into the journal; events
+        the service has no text for only into the run's events."""
+        if text.startswith(UNKNOWN_PREFIX):
+            self._event("autopilot_event", id=text.removeprefix(UNKNOWN_PREFIX))
+        else:
+            self._log(text if text.startswith("autopilot") else f"autopilot: {text}")
 
     def _log(self, line: str) -> None:
         """A line for the operator (the journal) and the run's events."""

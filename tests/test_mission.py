@@ -117,7 +117,7 @@ def test_no_auto_arm_unless_configured_and_arming_timeout_hands_over() -> None:
     m, ticks = run(Mission(MissionConfig(auto_offboard=True)), [ON_GROUND] * 50)
     assert m.state is State.READY and not any(
         k in (K.ARM, K.TAKEOFF, K.START_OFFBOARD) for t in ticks for k in kinds(t))
-    m, ticks = run(Mission(MissionConfig(auto_arm_takeoff=True, arm_timeout_s=5.0)),
+    m, ticks = run(Mission(MissionConfig(auto_arm_takeoff=True, arm_retry_s=5.0)),
                    [ON_GROUND] * 30)
     flat = [k for t in ticks for k in kinds(t)]
     assert m.state is State.READY and flat == [K.ARM] * 3 + [K.START_SETPOINTS]  # every 2 s
@@ -356,7 +356,7 @@ def test_a_refused_arm_is_asked_again_until_a_mode_change_or_the_timeout() -> No
     m, ticks = run(Mission(AUTO), [on_pad, on_pad, on_pad, replace(on_pad,
                                    flight_mode=FlightMode.POSCTL)] + [on_pad] * 30)
     flat = [k for t in ticks for k in kinds(t)]
-    assert flat == [K.ARM, K.START_SETPOINTS]  # the pilot's mode: no retry, a hold stream
+    assert flat == [K.ARM]  # the pilot's mode: no retry (and on the ground nothing to hold)
     assert m.state is State.PILOT_HAS_CONTROL
 
 
@@ -373,7 +373,7 @@ def test_mode_changes_before_the_first_decision_are_only_the_baseline() -> None:
         ({"takeoff_alt_m": 0.0}, "mission.takeoff_alt_m"),
         ({"takeoff_alt_m": float("nan")}, "mission.takeoff_alt_m"),
         ({"time_limit_s": -1.0}, "mission.time_limit_s"),
-        ({"arm_timeout_s": True}, "mission.arm_timeout_s"),
+        ({"arm_retry_s": True}, "mission.arm_retry_s"),
         ({"takeoff_timeout_s": float("inf")}, "mission.takeoff_timeout_s"),
         ({"sweeps": 0}, "search.sweeps"),
         ({"sweeps": 1.5}, "search.sweeps"),
