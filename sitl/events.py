@@ -2,8 +2,8 @@
 
 PX4 sends no STATUSTEXT on its API link: it reports why it refused a command as an EVENT, a
 32-bit id with arguments that a client looks up in the component's event metadata. The mock's
-ids are its own (PX4's namespace, 1, in the top byte), and `PX4_EVENT_TEXTS` is their metadata:
-the human text of each. The installed pymavlink dialects lack EVENT, so `MAVLink_event_message`
+ids are PX4 v1.15's where PX4 has that event (the estimator checks), else its own in PX4's
+namespace (1, the top byte), and `PX4_EVENT_TEXTS` is their metadata: the human text of each. The installed pymavlink dialects lack EVENT, so `MAVLink_event_message`
 defines it here (the wire format of common.xml: 53 bytes, CRC extra 160) and importing this
 module registers it with pymavlink's ardupilotmega dialect, unless that dialect has its own.
 """
@@ -20,11 +20,11 @@ MAVLINK_MSG_ID_EVENT = 410
 EVENT_ARGUMENTS_BYTES = 40
 PX4_NAMESPACE = 1  # the top byte of a PX4 event id: the component's event namespace
 
-# The mock's event ids.
-EVENT_ESTIMATOR_NOT_READY = 0x01C0_0001
-EVENT_NO_GPS_FIX = 0x01C0_0002
-EVENT_HORIZONTAL_VELOCITY_UNSTABLE = 0x01C0_0003
-EVENT_VERTICAL_VELOCITY_UNSTABLE = 0x01C0_0004
+# The mock's event ids (the first four: PX4 v1.15's own).
+EVENT_ESTIMATOR_NOT_READY = 0x0192_9C22
+EVENT_NO_GPS_FIX = 0x01BC_BE91
+EVENT_HORIZONTAL_VELOCITY_UNSTABLE = 0x0187_D640
+EVENT_VERTICAL_VELOCITY_UNSTABLE = 0x018B_F108
 EVENT_MODE_NOT_ARMABLE = 0x01C0_0005
 EVENT_BATTERY_LOW = 0x01C0_0006
 EVENT_POSITION_NOT_AVAILABLE = 0x01C0_0007
