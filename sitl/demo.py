@@ -67,6 +67,9 @@ def service_config(scenario: Scenario, sitl: Sitl, out_dir: Path,
     data["safety"].update(geofence=_latlon(scenario, fence),
                           max_alt_m=max(data["safety"]["max_alt_m"], v.altitude_m + 5.0))
     data["filter"] = scenario_to_dict(scenario)["filter"]
+    # The vehicle's calibration, as a user measures it once: the relative altitude minus the
+    # camera's true height (ArduPilot: +0.25 m).
+    data["pose"]["camera_rest_height_m"] = -sitl.autopilot.firmware.rel_alt_bias_m
     data["output"]["dir"] = str(out_dir.resolve())
     for table, values in overrides.items():
         data.setdefault(table, {}).update(values)

@@ -65,6 +65,23 @@ def test_field_experiment_mission(flavour: Literal["px4", "ardupilot"], tmp_path
     altitudes = -np.array([e["down_m"] for e in setpoints])
     assert np.all((altitudes >= 3.0 - 1e-6) & (altitudes <= 15.0 + 1e-6))  # the safety band
 
+    # As the firmware does it: ArduPilot's GUIDED take-off (MAVSDK's "OFFBOARD" before "in
+    # air") ends in the search with no mode request and no setpoint during the climb; PX4's
+    # transient arm refusals are outlasted.
+    events = _lines(result.run.out_dir / "events.jsonl")
+    texts = [e["text"] for e in events if e["event"] == "command" and e["kind"] == "statustext"]
+    commands = [e["kind"] for e in events if e["event"] == "command"]
+    first_setpoint_s = setpoints[0]["t_s"]
+    if flavour == "ardupilot":
+        assert "airborne in guided: searching" in texts and "start_offboard" not in commands
+        armed = next(e["t_s"] for e in events if e["event"] == "mode" and e["armed"])
+        assert first_setpoint_s > armed + 5.0  # nothing streamed while ArduPilot climbed
+    else:
+        refused = [e for e in events if e["event"] == "command_failed" and e["kind"] == "arm"]
+        assert refused and commands.count("arm") == len(refused) + 1
+        assert commands.count("start_offboard") == 1
+    assert altitudes[0] >= 0.9 * scenario.vehicle.altitude_m  # airborne means at altitude
+
     steps = _lines(result.run.out_dir / "steps.jsonl")
     assert sum(s["blind"] is None for s in steps) > 100
     geojson = json.loads((result.run.out_dir / "tracks.geojson").read_text())
@@ -106,6 +123,35 @@ def test_pilot_takeover_stops_commanding_and_estimating_goes_on(tmp_path: Path) 
     steps = _lines(result.run.out_dir / "steps.jsonl")
     seeing = [s for s in steps if s["t_s"] > released[0]["t_s"] + 1.0 and s["blind"] is None]
     assert len(seeing) > 30  # still estimating from the camera while the pilot flies
+
+
+@pytest.mark.parametrize(("mode", "at_s", "phase"), [
+    ("hold", 44.0, "taking_off"), ("land", 70.0, "searching")], ids=["loiter-takeoff",
+                                                                  "land-search"])
+def test_ardupilot_pilot_mode_is_never_overridden(mode: str, at_s: float, phase: str,
+                                                   tmp_path: Path) -> None:
+    """A pilot's LOITER in ArduPilot's GUIDED take-off, or LAND mid-search: the service never
+    asks for a mode, arms or takes off after it, and its planner setpoints stop at once."""
+    result = _fly(_scenario("ardupilot"), tmp_path, faults=f"pilot@{at_s:g}:{mode}",
+                  stop_after_s=at_s + 30.0)
+    events = _lines(result.run.out_dir / "events.jsonl")
+    states = [e["text"] for e in events if e["event"] == "command" and e["kind"] == "statustext"]
+    takeover = next(e for e in events if e["event"] == "command" and e["kind"] == "statustext"
+                    and e["text"].endswith("pilot has control"))
+    if phase == "taking_off":
+        assert "airborne in guided: searching" not in states  # still climbing when it came
+    else:
+        assert "airborne in guided: searching" in states
+    after = [e for e in events if e["t_s"] >= takeover["t_s"]]
+    assert not [e for e in after if e["event"] == "command" and e["kind"] in (
+        "arm", "takeoff", "start_offboard", "hold", "land", "rtl")]
+    planner = [e for e in after if e["event"] == "setpoint" and e["mode"] == "searching"]
+    assert not planner
+    snap = result.autopilot
+    assert snap.behaviour is Behaviour(mode)  # never taken back
+    assert snap.behaviour_reported_clock_s is not None
+    assert 0.0 <= takeover["t_s"] - snap.behaviour_reported_clock_s <= SETPOINT_PERIOD_S
+    assert result.run.mission_state == "pilot_has_control"
 
 
 def test_a_black_camera_loses_no_confirmed_track(tmp_path: Path) -> None:
