@@ -10,11 +10,11 @@ and served as MJPEG, each frame stamped on the autopilot's boot clock, as the mo
   GLOBAL_POSITION_INT + ATTITUDE. SIM_STATE's float latitude loses about 0.35 m: not used.
 - Heights: the ground is flat at the altitude of the scenario's `[geo] origin`, which is the
   autopilot's home; the camera's height is the AMSL altitude minus that altitude.
-- Times: the boot clock is `time_boot_ms` (ATTITUDE, GLOBAL_POSITION_INT, SYSTEM_TIME) and
-  HIL_STATE_QUATERNION's `time_usec`. SIMSTATE has no time stamp: its receive time is mapped to
-  boot time as the service's VehicleView does (receive time + the largest offset of the recent
-  samples, the least delayed one). Frames fall due at the camera's rate on that clock, and
-  each frame's pose is interpolated at its capture time.
+- Times: the boot clock is `time_boot_ms` (ATTITUDE, GLOBAL_POSITION_INT, SYSTEM_TIME).
+  SIMSTATE has no time stamp, and HIL_STATE_QUATERNION's `time_usec` stands still on PX4 SIH:
+  their receive time is mapped to boot time as the service's VehicleView does (receive time +
+  the largest offset of the recent samples, the least delayed one). Frames fall due at the
+  camera's rate on that clock, and each frame's pose is interpolated at its capture time.
 - The link: a 1 Hz ground-station heartbeat (system GCS_SYSTEM_ID) and SET_MESSAGE_INTERVAL for
   the messages above, again for any stream that stops for STREAM_TIMEOUT_S.
 """
@@ -91,7 +91,6 @@ FAR_FROM_ORIGIN_M = 100.0  # a first pose farther than this from [geo] origin ge
 _HEARTBEAT_PERIOD_S = 1.0
 _RECEIVE_TIMEOUT_S = 0.05
 _CLOCK_WAIT_WALL_S = 0.05
-_BOOT_USEC_MAX = 1e12  # a time_usec above this (11.6 days) is a Unix time, not a boot time
 
 _URL = re.compile(r"^(?P<scheme>[a-z]+):(//)?(?P<host>[^:/]*):(?P<port>[0-9]+)$")
 _SCHEMES = {"udpin": "udpin", "udp": "udpin", "udpout": "udpout", "tcp": "tcp",
@@ -335,14 +334,10 @@ class ExternalAutopilot:
                 t_s = self.clock.boot_at(rx_s)
                 self._add(SIMSTATE, t_s, (msg.lat / 1e7, msg.lng / 1e7, alt_m),
                           quaternion_from_euler(msg.roll, msg.pitch, msg.yaw))
-        elif kind == "HIL_STATE_QUATERNION":
-            if 0 < msg.time_usec < _BOOT_USEC_MAX:
-                t_s = msg.time_usec / 1e6
-                self.clock.observe(t_s, rx_s)
-            elif self.clock.known:
-                t_s = self.clock.boot_at(rx_s)
-            else:
-                return
+        elif kind == "HIL_STATE_QUATERNION" and self.clock.known:
+            # Its time_usec is not the boot clock: on PX4 v1.15 SIH it stands still while the
+            # boot time runs (measured: -2 s of offset every 2 s). Stamped on arrival instead.
+            t_s = self.clock.boot_at(rx_s)
             q = msg.attitude_quaternion
             self._add(HIL_STATE, t_s, (msg.lat / 1e7, msg.lon / 1e7, msg.alt / 1e3),
                       (float(q[0]), float(q[1]), float(q[2]), float(q[3])))
