@@ -39,8 +39,10 @@ from companion.errors import ConfigError
 
 STATUSTEXT_MAX = 50  # MAVLink STATUSTEXT payload, characters
 ARM_RETRY_EVERY_S = 2.0  # a refused arm is asked again this often (PX4's transient refusals)
-TAKEOFF_REACHED_FRACTION = 0.9  # airborne: at least this share of the take-off altitude ...
-TAKEOFF_REACHED_M = 0.5  # ... or within this of it, whichever is lower
+# Airborne: within 1 m of the take-off altitude (PX4 ends its take-off within NAV_MC_ALT_RAD,
+# 0.8 m by default), or at 85 % of a low one.
+TAKEOFF_REACHED_FRACTION = 0.85
+TAKEOFF_REACHED_M = 1.0
 
 
 class FlightMode(Enum):
@@ -230,7 +232,7 @@ def _stop(m: Mission) -> list[Command]:
 
 
 def _takeoff_reached(cfg: MissionConfig, i: MissionInputs) -> bool:
-    """At the take-off altitude (within 10 %, or 0.5 m)."""
+    """At the take-off altitude (within 1 m, or 15 % of a low one)."""
     margin_m = min(TAKEOFF_REACHED_M, (1.0 - TAKEOFF_REACHED_FRACTION) * cfg.takeoff_alt_m)
     return i.alt_rel_m is not None and i.alt_rel_m >= cfg.takeoff_alt_m - margin_m
 
