@@ -64,6 +64,7 @@ PREFLIGHT_DISARM_S = 10.0  # PX4 COM_DISARM_PRFLT: armed on the ground without t
 LANDED_DISARM_S = 2.0  # PX4 COM_DISARM_LAND
 LAND_SPEED_M_S = 0.7
 REACHED_M = 0.3
+TAKEOFF_DONE_M = 0.8  # PX4 NAV_MC_ALT_RAD: AUTO.TAKEOFF hands over to Hold this close
 STREAMING_WINDOW_S = 1.0  # offboard needs setpoints above 2 Hz: two within this window...
 STREAMING_FRESH_S = 0.5  # ...and the last one this recent
 IN_AIR_HEIGHT_M = 0.2  # the landed state says "in air" once this high above the ground
@@ -547,7 +548,7 @@ class MockAutopilot:
             self._landed_at_s = 0.0
         if self._behaviour is Behaviour.TAKEOFF and self._mode_target is not None:
             assert self._mode_target.position_ned is not None
-            if abs(v.position_ned[2] - self._mode_target.position_ned[2]) < REACHED_M:
+            if abs(v.position_ned[2] - self._mode_target.position_ned[2]) < TAKEOFF_DONE_M:
                 self._set_behaviour(Behaviour.HOLD)
         if self._behaviour is Behaviour.OFFBOARD and self.config.flavour is Flavour.PX4:
             last = self._setpoint.t_s if self._setpoint is not None else -math.inf

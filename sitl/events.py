@@ -3,9 +3,10 @@
 PX4 sends no STATUSTEXT on its API link: it reports why it refused a command as an EVENT, a
 32-bit id with arguments that a client looks up in the component's event metadata. The mock's
 ids are PX4 v1.15's where PX4 has that event (the estimator checks), else its own in PX4's
-namespace (1, the top byte), and `PX4_EVENT_TEXTS` is their metadata: the human text of each. The installed pymavlink dialects lack EVENT, so `MAVLink_event_message`
-defines it here (the wire format of common.xml: 53 bytes, CRC extra 160) and importing this
-module registers it with pymavlink's ardupilotmega dialect, unless that dialect has its own.
+namespace (1, the top byte), and `PX4_EVENT_TEXTS` is their metadata: the human text of each.
+The installed pymavlink dialects lack EVENT, so `MAVLink_event_message` defines it here (the
+wire format of common.xml: 53 bytes, CRC extra 160) and importing this module registers it
+with pymavlink's ardupilotmega dialect, unless that dialect has its own.
 """
 
 from __future__ import annotations

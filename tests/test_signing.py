@@ -192,7 +192,8 @@ def test_a_forged_frame_cannot_push_a_stream_timestamp(key: bytes) -> None:
 @contextlib.contextmanager
 def _signing_sitl(key: bytes) -> Iterator[Sitl]:
     s = load_scenario(sitl_scenarios()["field-5-tags"])
-    scenario = dataclasses.replace(s, vehicle=dataclasses.replace(s.vehicle, armable_after_s=1.0))
+    scenario = dataclasses.replace(s, vehicle=dataclasses.replace(
+        s.vehicle, armable_after_s=1.0, height_error_m=0.0))  # it climbs to the true altitude
     sitl = Sitl(scenario, speedup=SPEEDUP, mavlink_port=free_udp_port(), signing_key=key)
     sitl.start()
     try:

@@ -245,15 +245,15 @@ class VehicleSpec:
     rel_alt_bias_m: float | None
     position_noise_m: float
     gps_drift_m_per_sqrt_s: float
-    heading_error_deg: float
-    attitude_error_deg: float
-    position_error_m: float
-    height_error_m: float
+    heading_error_deg: float | None
+    attitude_error_deg: float | None
+    position_error_m: float | None
+    height_error_m: float | None
     error_time_constant_s: float
     battery_flight_s: float
     battery_low_percent: float
     ekf_origin_offset_m: tuple[float, float]
-    rangefinder: bool
+    rangefinder: bool | None
     rangefinder_max_m: float
 
 
@@ -495,15 +495,19 @@ _SECTIONS: dict[str, tuple[Key, ...]] = {
              "SITL: white noise on the reported position, metres per axis"),
         Key("gps_drift_m_per_sqrt_s", "gps_drift_m_per_sqrt_s", Float(ge=0), 0.0,
              "SITL: random walk of the reported position, m/sqrt(s)"),
-        Key("heading_error_deg", "heading_error_deg", Float(ge=0, le=90), 0.0,
+        Key("heading_error_deg", "heading_error_deg", Float(ge=0, le=90),
+             Derived("0.4 for ardupilot, 1.5 for px4"),
              "SITL: 1-sigma of the slowly varying heading estimate error, degrees (measured: "
              "PX4 SIH 1-12 off, ArduPilot within 0.6)"),
-        Key("attitude_error_deg", "attitude_error_deg", Float(ge=0, le=30), 0.0,
+        Key("attitude_error_deg", "attitude_error_deg", Float(ge=0, le=30),
+             Derived("0.3 for ardupilot, 1 for px4"),
              "SITL: 1-sigma of the roll and pitch estimate errors, degrees (measured: PX4 1-2)"),
-        Key("position_error_m", "position_error_m", Float(ge=0, le=100), 0.0,
+        Key("position_error_m", "position_error_m", Float(ge=0, le=100),
+             Derived("0.02 for ardupilot, 0.15 for px4"),
              "SITL: 1-sigma of the north and east estimate errors, metres (measured: PX4 "
              "median 0.13-0.25, ArduPilot about 0.02)"),
-        Key("height_error_m", "height_error_m", Float(ge=0, le=100), 0.0,
+        Key("height_error_m", "height_error_m", Float(ge=0, le=100),
+             Derived("0.05 for ardupilot, 0.5 for px4"),
              "SITL: 1-sigma of the height estimate error, metres (measured: PX4 up to 1.8)"),
         Key("error_time_constant_s", "error_time_constant_s", Float(gt=0), 30.0,
              "SITL: correlation time of the estimate errors (Gauss-Markov), seconds"),
@@ -514,7 +518,8 @@ _SECTIONS: dict[str, tuple[Key, ...]] = {
         Key("ekf_origin_offset_m", "ekf_origin_offset_m", Pair(Float()), [4.0, -3.0],
              "SITL, ArduPilot: EKF origin minus home, [north, east] metres (its local NED is "
              "about the EKF origin)"),
-        Key("rangefinder", "rangefinder", Bool(), False,
+        Key("rangefinder", "rangefinder", Bool(), Derived("true for px4 (SIH has one), false for "
+                                                          "ardupilot"),
              "SITL: a downward rangefinder (DISTANCE_SENSOR: PX4 at 10 Hz, ArduPilot in EXTRA3 "
              "or on request)"),
         Key("rangefinder_max_m", "rangefinder_max_m", Float(gt=0, le=1000), 40.0,
