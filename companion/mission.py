@@ -43,6 +43,11 @@ ARM_RETRY_EVERY_S = 2.0  # a refused arm is asked again this often (PX4's transi
 # 0.8 m by default), or at 85 % of a low one.
 TAKEOFF_REACHED_FRACTION = 0.85
 TAKEOFF_REACHED_M = 1.0
+# PX4's switch from AUTO.TAKEOFF to Hold is its own above half the altitude: the heartbeat that
+# shows it can come with a position a few tenths of a second old, taken on the climb. A pilot's
+# Hold higher up is taken for it, but the take-off then never counts as done unless the vehicle
+# is within TAKEOFF_REACHED_M, and a take-off that fails spends the automatic offboard.
+PX4_TAKEOFF_END_FRACTION = 0.5
 
 
 class FlightMode(Enum):
@@ -254,8 +259,9 @@ def _observe(m: Mission, i: MissionInputs) -> Mission:
         return dataclasses.replace(m, mode_seen=mode, mode_ours=False, mode_fresh=False)
     ours = mode in m.expected_modes
     if (ours and mode is FlightMode.HOLD and m.mode_seen is FlightMode.TAKEOFF
-            and not _takeoff_reached(m.config, i)):
-        ours = False  # PX4 ends its take-off in Hold at the altitude; below it, someone else
+            and (i.alt_rel_m is None or i.alt_rel_m < PX4_TAKEOFF_END_FRACTION
+                 * m.config.takeoff_alt_m)):
+        ours = False  # PX4 ends its take-off in Hold near the altitude; low down, someone else
     return dataclasses.replace(
         m, mode_seen=mode, mode_ours=ours, mode_fresh=True,
         auto_arm_spent=m.auto_arm_spent or not ours,
@@ -368,7 +374,8 @@ def _taking_off(m: Mission, i: MissionInputs, t_s: float) -> tuple[Mission, list
             return _enter_ready(m, i, t_s, "airborne in guided: pilot's turn")
         return _enter_ready(m, i, t_s, "airborne: ready, waiting for offboard")
     if not i.armed or t_s - m.since_s >= cfg.takeoff_timeout_s:
-        return _enter_ready(m, i, t_s, "takeoff failed: pilot's turn", Severity.WARNING)
+        return _enter_ready(dataclasses.replace(m, auto_offboard_spent=True), i, t_s,
+                            "takeoff failed: pilot's turn", Severity.WARNING)
     return m, []
 
 

@@ -522,8 +522,10 @@ def soak(options: SoakOptions) -> SoakReport:
     sent_s = [float(e["t_s"]) for e in events if e["event"] == "setpoint"]
     sc = result.score
     final = result.autopilot
+    armed_s = next((e["t_s"] for e in events if e["event"] == "mode" and e["armed"]), math.inf)
     errors = [f"{e['event']}: {e.get('error') or e.get('kind')}" for e in events
-              if e["event"] in ("error", "command_failed")]
+              if e["event"] == "error" or (e["event"] == "command_failed" and not (
+                  e["kind"] == "arm" and e["t_s"] < armed_s))]  # PX4's transient refusals
     return SoakReport(
         options=options, scenario=scenario, out_dir=run_dir,
         sim_s=final.clock_s, wall_s=wall_s, steps=len(steps), steps_due=steps_due,

@@ -342,9 +342,20 @@ def test_px4_pilot_hold_during_the_takeoff_is_a_takeover() -> None:
     on_pad = replace(ON_GROUND, flight_mode=FlightMode.HOLD)
     taking_off = climbing(replace(on_pad, armed=True, flight_mode=FlightMode.TAKEOFF), 3.0)
     m, _ = run(Mission(AUTO), [on_pad, on_pad, replace(on_pad, armed=True), taking_off])
-    hold = climbing(replace(STREAMING, flight_mode=FlightMode.HOLD), 3.2)  # below 8 m: not ours
+    hold = climbing(replace(STREAMING, flight_mode=FlightMode.HOLD), 3.2)  # low: not ours
     m, ticks = run(m, [hold] * 3 + [replace(hold, setpoints_streaming=False)] * 50, 4.0)
     assert m.state is State.PILOT_HAS_CONTROL
+    assert not {k for t in ticks for k in kinds(t)} & set(NEVER_AGAIN)
+
+
+def test_px4_hold_high_in_the_takeoff_that_never_reaches_the_altitude_asks_for_nothing() -> None:
+    on_pad = replace(ON_GROUND, flight_mode=FlightMode.HOLD)
+    taking_off = climbing(replace(on_pad, armed=True, flight_mode=FlightMode.TAKEOFF), 5.0)
+    m, _ = run(Mission(replace(AUTO, takeoff_timeout_s=20.0)),
+               [on_pad, on_pad, replace(on_pad, armed=True), taking_off])
+    hold = climbing(replace(STREAMING, flight_mode=FlightMode.HOLD), 5.5)  # a pilot's, at 5.5 m
+    m, ticks = run(m, [hold] * 40, 4.0)
+    assert m.state is State.READY  # "takeoff failed: pilot's turn"
     assert not {k for t in ticks for k in kinds(t)} & set(NEVER_AGAIN)
 
 

@@ -71,11 +71,9 @@ def test_field_experiment_mission(flavour: Literal["px4", "ardupilot"], tmp_path
     events = _lines(result.run.out_dir / "events.jsonl")
     texts = [e["text"] for e in events if e["event"] == "command" and e["kind"] == "statustext"]
     commands = [e["kind"] for e in events if e["event"] == "command"]
-    first_setpoint_s = setpoints[0]["t_s"]
+    assert not [e for e in setpoints if e["mode"] in ("arming", "taking_off")]
     if flavour == "ardupilot":
         assert "airborne in guided: searching" in texts and "start_offboard" not in commands
-        armed = next(e["t_s"] for e in events if e["event"] == "mode" and e["armed"])
-        assert first_setpoint_s > armed + 5.0  # nothing streamed while ArduPilot climbed
     else:
         refused = [e for e in events if e["event"] == "command_failed" and e["kind"] == "arm"]
         assert refused and commands.count("arm") == len(refused) + 1
