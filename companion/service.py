@@ -279,8 +279,7 @@ class Service:
                         wake = asyncio.Event()  # a control tick is due now, not on schedule
                         self.view.on_mode_change = lambda: self._mode_event(wake)
                         self.view.on_text = self._autopilot_text
-                        tasks = [group.create_task(link.run_telemetry(self.view)),
-                                 group.create_task(link.run_recording(record)),
+                        tasks = [group.create_task(link.run_telemetry(self.view, record)),
                                  group.create_task(_set_when(stop, wake))]
                         done = asyncio.Event()
                         estimator = group.create_task(

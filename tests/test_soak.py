@@ -6,7 +6,9 @@ memory after the warm-up, the filter's component cap, the setpoint stream as the
 received it, and a clean end (landed, no error, no thread or file left open).
 
 No setpoint may leave the service more than 1.5 periods of simulated time after the one
-before (at 4x, a stall of 38 ms of wall time would break that). As the autopilot receives
+before (at 3x, a stall of 50 ms of wall time would break that; at 4x, with the firmware's
+further telemetry of this round handled in the same process as the SITL, that bound was missed
+by a few milliseconds of wall time in 2 of 3 runs). As the autopilot receives
 them, the gaps also carry the scheduling of MAVSDK's server and the SITL's threads on this
 2-core machine, four times magnified (a gap of 0.16 s was seen in a few runs), so there the test
 only asserts that the stream never lapses into the offboard failsafe. The 30-minute soak
@@ -37,7 +39,7 @@ from sitl.soak import (
 )
 
 SEARCH_S = 150.0  # with take-off and landing: about 185 simulated seconds
-SPEEDUP = 4.0  # about 50 s of wall time
+SPEEDUP = 3.0  # about 65 s of wall time
 RSS_EVERY_S = 2.0
 STOP_MARGIN_S = 60.0  # a mission stuck after its time limit ends the run (and fails) soon
 RSS_GROWTH_LIMIT_MB = 50.0

@@ -2,10 +2,11 @@
 
 `MavsdkLink.connect(url)` finds the first autopilot and identifies us as an onboard computer
 (component 195). It asks for the telemetry it needs, because an ArduPilot sends nothing until
-asked. `run_telemetry(sink)` then feeds a `TelemetrySink` until cancelled. Poses come from the raw
-GLOBAL_POSITION_INT, LOCAL_POSITION_NED and ATTITUDE_QUATERNION messages (MavlinkDirect), so each
-carries the autopilot's `time_boot_ms`, the time base of the camera's capture times. Flight
-mode, armed state, health, in-air and battery come from the Telemetry plugin.
+asked. `run_telemetry(sink, record)` then feeds a `TelemetrySink` until cancelled. Poses come
+from the raw GLOBAL_POSITION_INT, LOCAL_POSITION_NED and ATTITUDE_QUATERNION messages
+(MavlinkDirect, one subscription to every message), so each carries the autopilot's
+`time_boot_ms`, the time base of the camera's capture times. Flight mode, armed state, health,
+in-air and battery come from the Telemetry plugin.
 
 Stopping: `release()` ends the setpoint stream without asking for any mode. MAVSDK's own
 Offboard.stop() asks for Hold even after a pilot switched to Position, taking the vehicle back
@@ -97,6 +98,7 @@ def route_mavsdk_log(sink: Callable[[str], None]) -> None:
 
 
 MAV_SENSOR_ROTATION_PITCH_270 = 25  # a DISTANCE_SENSOR that looks down
+HEIGHT_RATE_HZ = 10.0  # rangefinder and terrain heights: a frame takes one within 0.3 s
 MM = 1e-3
 CM = 1e-2
 TERRAIN_UNKNOWN_M = -1000.0  # ALTITUDE.altitude_terrain below this: unknown
@@ -157,8 +159,9 @@ class MavsdkLink:
                              (t.set_rate_attitude_quaternion, rate_hz),
                              (t.set_rate_health, 2.0), (t.set_rate_in_air, 2.0),
                              (t.set_rate_battery, 1.0), (t.set_rate_gps_info, 2.0),
-                             (t.set_rate_distance_sensor, rate_hz),
-                             (t.set_rate_altitude, rate_hz)):
+                             (t.set_rate_odometry, 2.0),  # for its covariance (PX4: 30 Hz)
+                             (t.set_rate_distance_sensor, HEIGHT_RATE_HZ),
+                             (t.set_rate_altitude, HEIGHT_RATE_HZ)):
             with contextlib.suppress(Exception):  # an autopilot may refuse a rate: keep its own
                 await set_rate(hz)
 
@@ -169,8 +172,10 @@ class MavsdkLink:
 
     # -- telemetry ---------------------------------------------------------------------------
 
-    async def run_telemetry(self, sink: TelemetrySink) -> None:
-        """Deliver telemetry to sink until cancelled."""
+    async def run_telemetry(self, sink: TelemetrySink,
+                            record: Callable[[int, int, str, str], None] | None = None) -> None:
+        """Deliver telemetry to sink until cancelled, and every message received to record, as
+        (system, component, name, fields as JSON); record must be quick (it runs on the loop)."""
         def gps(f: dict[str, Any]) -> None:
             if f.get("h_acc") and f.get("v_acc"):  # 0: the receiver does not say
                 sink.on_accuracy("gps", f["h_acc"] * MM, f["v_acc"] * MM)
@@ -209,25 +214,23 @@ class MavsdkLink:
                 describe_event(int(f["id"]), list(f.get("arguments") or []))),
         }
         async with asyncio.TaskGroup() as group:
-            for name, handler in handlers.items():
-                group.create_task(self._messages(name, handler))
+            group.create_task(self._messages(handlers, record))
             group.create_task(self._status_updates(sink))
 
-    async def run_recording(self, record: Callable[[int, int, str, str], None]) -> None:
-        """Every message received, as (system, component, name, fields as JSON), until
-        cancelled; record must be quick (it runs on the event loop)."""
+    async def _messages(self, handlers: dict[str, Callable[[dict[str, Any]], None]],
+                        record: Callable[[int, int, str, str], None] | None) -> None:
+        """One subscription to every message (each further one costs the event loop): each to
+        record, and the autopilot's own (component 1) to its handler."""
         async with contextlib.aclosing(self.direct.subscribe_message("")) as messages:
             async for message in messages:
-                record(message.system_id, message.component_id, message.message_name,
-                       message.fields_json)
-
-    async def _messages(self, name: str, deliver: Callable[[dict[str, Any]], None]) -> None:
-        async with contextlib.aclosing(self.direct.subscribe_message(name)) as messages:
-            async for message in messages:
-                if message.component_id != 1:
+                if record is not None:
+                    record(message.system_id, message.component_id, message.message_name,
+                           message.fields_json)
+                handler = handlers.get(message.message_name)
+                if handler is None or message.component_id != 1:
                     continue  # only the autopilot's own estimate
                 try:
-                    deliver(_fields(message))
+                    handler(_fields(message))
                 except (KeyError, TypeError, ValueError, ArithmeticError):  # malformed fields
                     self.malformed += 1
 
