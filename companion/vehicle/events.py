@@ -39,7 +39,7 @@ EVENT_TEXTS: dict[int, str] = {
 UNKNOWN_PREFIX = "autopilot event 0x"
 
 
-def describe_event(event_id: int, arguments: list[int]) -> str:
+def describe_event(event_id: int) -> str:
     """One line for an autopilot event: its known text, else its id (`UNKNOWN_PREFIX`...)."""
     text = EVENT_TEXTS.get(event_id)
     return f"autopilot: {text}" if text else f"{UNKNOWN_PREFIX}{event_id:08x}"

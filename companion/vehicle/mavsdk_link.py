@@ -211,7 +211,7 @@ class MavsdkLink:
             "ALTITUDE": altitude,
             "STATUSTEXT": lambda f: sink.on_autopilot_text(str(f["text"]).rstrip("\x00")),
             "EVENT": lambda f: sink.on_autopilot_text(
-                describe_event(int(f["id"]), list(f.get("arguments") or []))),
+                describe_event(int(f["id"]))),
         }
         async with asyncio.TaskGroup() as group:
             group.create_task(self._messages(handlers, record))
