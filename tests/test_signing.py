@@ -60,13 +60,6 @@ def key() -> bytes:
     return secrets.token_bytes(32)
 
 
-@pytest.fixture
-def client() -> Iterator[Client]:
-    c = Client()
-    yield c
-    c.close()
-
-
 def _until(condition: Callable[[], bool], timeout_s: float = WAIT_S) -> None:
     """Poll a condition until it holds (AssertionError after timeout_s)."""
     deadline = time.monotonic() + timeout_s

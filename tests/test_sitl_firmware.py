@@ -46,13 +46,6 @@ GPS = mavlink.MAV_SYS_STATUS_SENSOR_GPS
 
 
 @pytest.fixture
-def client() -> Iterator[Client]:
-    c = Client()
-    yield c
-    c.close()
-
-
-@pytest.fixture
 def started() -> Iterator[Callable[..., MockAutopilot]]:
     """Start autopilots on the client's port; every one is stopped afterwards."""
     running: list[MockAutopilot] = []

@@ -112,13 +112,6 @@ PERFECT_POSE = {"heading_error_deg": 0.0, "attitude_error_deg": 0.0, "position_e
 
 
 @pytest.fixture
-def client() -> Iterator[Client]:
-    c = Client()
-    yield c
-    c.close()
-
-
-@pytest.fixture
 def field(client: Client) -> Iterator[Sitl]:
     scenario = _scenario("field-5-tags", armable_after_s=0.0, **PERFECT_POSE)
     with Sitl(scenario, speedup=SPEEDUP, mavlink_port=client.port) as sitl:

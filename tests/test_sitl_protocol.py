@@ -22,13 +22,6 @@ ACCEPTED, DENIED = mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_DENIED
 CUSTOM = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
 
 
-@pytest.fixture
-def client() -> Iterator[Client]:
-    c = Client()
-    yield c
-    c.close()
-
-
 def _start(client: Client, **config: object) -> MockAutopilot:
     cfg = AutopilotConfig(**config)  # type: ignore[arg-type]
     link = UdpLink([("127.0.0.1", client.port)], np.random.default_rng(1))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import astuple
 
 import pytest
 
@@ -30,7 +31,7 @@ FLOORS = PoseConfig(horizontal_std_m=0.1, vertical_std_m=0.1, attitude_std_deg=0
 def test_the_best_fresh_source_gives_each_figure() -> None:
     clock = Clock()
     view = VehicleView(clock)
-    assert all(math.isnan(v) for v in vars_of(view.accuracy()))
+    assert all(math.isnan(v) for v in astuple(view.accuracy()))
     view.on_accuracy("gps", 0.8, 1.2)
     view.on_accuracy("estimator", 0.3, 0.6)
     view.on_accuracy("odometry", 0.2, math.nan, 1.5, 4.0)  # no vertical figure: the next one's
@@ -41,10 +42,6 @@ def test_the_best_fresh_source_gives_each_figure() -> None:
     view.on_accuracy("gps", -1.0, 1.0)  # refused: a negative sigma
     view.on_accuracy("magic", 0.01, 0.01)  # refused: an unknown source
     assert view.accuracy() == Accuracy(0.8, 1.2, math.nan, math.nan)
-
-
-def vars_of(a: Accuracy) -> tuple[float, float, float, float]:
-    return a.horizontal_std_m, a.vertical_std_m, a.attitude_std_deg, a.heading_std_deg
 
 
 def test_the_floors_hold_under_the_autopilots_figures() -> None:

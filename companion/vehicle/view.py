@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import astuple, dataclass
 
 import numpy as np
 
@@ -77,7 +77,6 @@ class VehicleView:
         self._accuracy: dict[str, tuple[float, Accuracy]] = {}  # source: (received, figures)
         self._ranges: deque[tuple[float, float]] = deque(maxlen=HEIGHT_SAMPLES)
         self._terrain: deque[tuple[float, float]] = deque(maxlen=HEIGHT_SAMPLES)
-        self.texts: deque[str] = deque(maxlen=50)  # the autopilot's own messages, newest last
         self.on_text: Callable[[str], None] = lambda _: None
 
     # -- the sink ----------------------------------------------------------------------------
@@ -154,11 +153,9 @@ class VehicleView:
                     attitude_std_deg: float = math.nan, heading_std_deg: float = math.nan) -> None:
         """The autopilot's own uncertainty figures from one source (odometry, estimator, gps)."""
         values = (horizontal_std_m, vertical_std_m, attitude_std_deg, heading_std_deg)
-        if source not in ACCURACY_SOURCES or any(v < 0.0 for v in values if not math.isnan(v)):
-            return
-        if not all(math.isfinite(v) or math.isnan(v) for v in values):
-            return
-        self._accuracy[source] = (self._clock(), Accuracy(*values))
+        if source in ACCURACY_SOURCES and all(math.isnan(v) or 0.0 <= v < math.inf
+                                              for v in values):
+            self._accuracy[source] = (self._clock(), Accuracy(*values))
 
     def on_distance(self, t_s: float, distance_m: float, min_m: float, max_m: float) -> None:
         """A downward rangefinder's reading; out of its range it says nothing."""
@@ -172,7 +169,6 @@ class VehicleView:
 
     def on_autopilot_text(self, text: str) -> None:
         """A STATUSTEXT or event of the autopilot's (a refusal's reason, say)."""
-        self.texts.append(text)
         self.on_text(text)
 
     # -- what it knows -----------------------------------------------------------------------
@@ -181,14 +177,11 @@ class VehicleView:
         """The autopilot's latest figures, each from the best source that gave it recently."""
         now = self._clock()
         best = [math.nan] * 4
-        for source in reversed(ACCURACY_SOURCES):
+        for source in reversed(ACCURACY_SOURCES):  # the better overwrite
             received_s, figures = self._accuracy.get(source, (-math.inf, Accuracy()))
-            if now - received_s > ACCURACY_FRESH_S:
-                continue
-            for k, value in enumerate((figures.horizontal_std_m, figures.vertical_std_m,
-                                       figures.attitude_std_deg, figures.heading_std_deg)):
-                if not math.isnan(value):
-                    best[k] = value
+            if now - received_s <= ACCURACY_FRESH_S:
+                best = [b if math.isnan(v) else v for b, v in zip(best, astuple(figures),
+                                                                  strict=True)]
         return Accuracy(*best)
 
     def height_at(self, t_s: float, alt_rel_m: float, tilt_cos: float,
