@@ -263,8 +263,9 @@ SECTIONS: dict[str, tuple[Key, ...]] = {
         Key("fov", "fov", Choice("camera", "disk"), "camera",
             "sensing region: the camera footprint this frame covered, or the paper's disk"),
         Key("fov_radius_m", "fov_radius_m", Float(gt=0), 6.0, "disk radius for fov = \"disk\""),
-        Key("footprint_margin_m", "footprint_margin_m", Float(ge=0, le=10), 0.3,
-            "the footprint shrunk by this much: a tag cut by the image edge is not detected"),
+        Key("footprint_margin_m", "footprint_margin_m", Float(ge=0, le=10), 0.5,
+            "the footprint shrunk by this much: a tag cut by the image edge is not detected "
+            "(a 0.5 m tag printed with its quiet zone reaches 0.44 m from its centre)"),
         Key("max_range_m", "max_range_m", Float(gt=0), 100.0,
             "ground points farther than this from the vehicle are out of the footprint"),
     ),
