@@ -22,9 +22,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import integrate
 
-from companion.cli import resolve_scenario
 from companion.sat.fov import ConvexPolygon, Disk, Region, prob_in_region
 from companion.sat.gp import GpParams, GpPredictor, gp_predict, predict_fit
+from companion.scenario_lookup import resolve_scenario
 from companion.sim.run import simulate
 from companion.sim.scenario import load_scenario
 

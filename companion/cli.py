@@ -12,41 +12,22 @@ import json
 import math
 import os
 import sys
-from collections.abc import Callable, Sequence
-from importlib import resources
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from companion.errors import CompanionError, ConfigError
+from companion.command import EXIT_OK, run_command
+from companion.errors import ConfigError
+from companion.progress import progress_bar
+from companion.scenario_lookup import resolve_scenario
 
 if TYPE_CHECKING:
     from companion.config import ServiceConfig
-
-EXIT_OK, EXIT_ERROR, EXIT_USAGE = 0, 1, 2
-
-
-def shipped_scenarios(package: str = "companion") -> dict[str, Path]:
-    """The scenario files that ship with a package (companion's or sitl's), by name."""
-    folder = Path(str(resources.files(package) / "scenarios"))
-    return {p.stem: p for p in sorted(folder.glob("*.toml"))}
-
-
-def resolve_scenario(arg: str) -> Path:
-    """A scenario path from a file path or the name of a shipped scenario."""
-    path = Path(arg)
-    if path.exists():
-        return path
-    shipped = shipped_scenarios()
-    if arg in shipped:
-        return shipped[arg]
-    names = ", ".join(shipped) or "none"
-    raise ConfigError(arg, f"no such scenario file, and no shipped scenario of that name ({names})")
 
 
 def _simulate(args: argparse.Namespace) -> int:
     from companion.sim.run import simulate
     from companion.sim.scenario import load_scenario
-    from companion.sim.study import progress_bar
 
     scenario = load_scenario(resolve_scenario(args.scenario), seed=args.seed)
     with progress_bar(scenario.name, unit="step") as bar:
@@ -138,7 +119,6 @@ def _run(args: argparse.Namespace) -> int:
 def _replay(args: argparse.Namespace) -> int:
     from companion.config import load_config
     from companion.replay import FrameTimes, load_truth, replay_log, replay_run
-    from companion.sim.study import progress_bar
 
     config = load_config(args.config) if args.config else None
     truth = load_truth(args.truth) if args.truth else None
@@ -251,33 +231,6 @@ def build_parser() -> argparse.ArgumentParser:
     check.add_argument("config", type=Path, help="the service's TOML configuration")
     check.set_defaults(run=_check_config)
     return parser
-
-
-def run_command(prog: str, body: Callable[[], int]) -> int:
-    """Run a command's body; errors become one line on stderr and an exit status, no traceback.
-
-    ConfigError (a bad file, key or argument) exits 2; any other error exits 1, with the
-    traceback only when COMPANION_DEBUG is set.
-    """
-    try:
-        return body()
-    except ConfigError as exc:
-        print(f"{prog}: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    except KeyboardInterrupt:
-        print(f"{prog}: interrupted", file=sys.stderr)
-        return EXIT_ERROR
-    except (CompanionError, OSError) as exc:
-        if os.environ.get("COMPANION_DEBUG"):
-            raise
-        print(f"{prog}: error: {exc}", file=sys.stderr)
-        return EXIT_ERROR
-    except Exception as exc:  # the last line of defence: no traceback at a user
-        if os.environ.get("COMPANION_DEBUG"):
-            raise
-        print(f"{prog}: internal error: {type(exc).__name__}: {exc} "
-              "(set COMPANION_DEBUG=1 for the traceback)", file=sys.stderr)
-        return EXIT_ERROR
 
 
 def main(argv: Sequence[str] | None = None) -> int:

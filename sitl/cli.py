@@ -17,8 +17,9 @@ import threading
 from collections.abc import Sequence
 from pathlib import Path
 
-from companion.cli import run_command, shipped_scenarios
+from companion.command import run_command
 from companion.errors import ConfigError
+from companion.scenario_lookup import shipped_scenarios
 from companion.sim.scenario import load_scenario
 from sitl.external import URL_KEY, run_external
 from sitl.faults import parse_faults

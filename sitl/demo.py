@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.cli import run_command
+from companion.command import run_command
 from companion.config import ServiceConfig, parse_config
 from companion.errors import ConfigError
 from companion.keys import load_toml

@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from companion.cli import main, shipped_scenarios
+from companion.cli import main
+from companion.scenario_lookup import shipped_scenarios
 from companion.sim.scenario import load_scenario
 
 CONTRACT_KEYS = {

@@ -7,11 +7,10 @@ numbers, and writes them (Markdown and CSV) with the plots under the output dire
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import math
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -19,9 +18,10 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from tqdm import tqdm
 
 from companion.errors import CompanionError
+from companion.progress import progress_bar
+from companion.scenario_lookup import resolve_scenario
 
 FloatArray = NDArray[np.float64]
 
@@ -95,27 +95,6 @@ GOALS = {"mahal_closest_mean": 1.0, "ospa_tail_mean": 3.0}
 STONE_SOUP_OSPA_TAIL = 48.6
 
 
-class _Bar:
-    """A tqdm bar on standard error with a `update_to(done, total)` callback."""
-
-    def __init__(self, bar: tqdm) -> None:
-        self._bar = bar
-
-    def update_to(self, done: int, total: int) -> None:
-        """Set the bar to done out of total."""
-        if self._bar.total != total:
-            self._bar.total = total
-        self._bar.update(done - self._bar.n)
-
-
-@contextlib.contextmanager
-def progress_bar(description: str, unit: str) -> Iterator[_Bar]:
-    """A progress bar on standard error (quiet when standard error is not a terminal)."""
-    with tqdm(desc=description, unit=unit, file=sys.stderr, mininterval=0.5, leave=False,
-              disable=None) as bar:
-        yield _Bar(bar)
-
-
 def run_one(
     scenario: str, seed: int, plot_dir: Path | None, steps: int | None = None
 ) -> dict[str, Any]:
@@ -123,7 +102,6 @@ def run_one(
 
     `steps` shortens every run to that many steps (a quick look, not the study's figures).
     """
-    from companion.cli import resolve_scenario
     from companion.sim.run import simulate
     from companion.sim.scenario import load_scenario
 
