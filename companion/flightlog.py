@@ -42,6 +42,7 @@ from pyproj import Proj
 from pyulog import ULog
 
 from companion.errors import InputError
+from companion.rotation import quaternions_from_euler
 
 __all__ = ["FlightLog", "read_flight_log"]
 
@@ -83,18 +84,6 @@ def _rows(values: list[tuple[float, ...]] | FloatArray) -> FloatArray:
     """Rows as a (k, 5) float64 array, (0, 5) if there are none."""
     array = np.asarray(values, dtype=np.float64)
     return array.reshape(-1, 5) if array.size else np.empty((0, 5))
-
-
-def _euler_zyx_to_quaternion(roll_rad: FloatArray, pitch_rad: FloatArray,
-                             yaw_rad: FloatArray) -> FloatArray:
-    """(k, 4) w, x, y, z of body -> NED rotations given as yaw, then pitch, then roll."""
-    cr, sr = np.cos(roll_rad / 2.0), np.sin(roll_rad / 2.0)
-    cp, sp = np.cos(pitch_rad / 2.0), np.sin(pitch_rad / 2.0)
-    cy, sy = np.cos(yaw_rad / 2.0), np.sin(yaw_rad / 2.0)
-    return np.stack([cr * cp * cy + sr * sp * sy,
-                     sr * cp * cy - cr * sp * sy,
-                     cr * sp * cy + sr * cp * sy,
-                     cr * cp * sy - sr * sp * cy], axis=1)
 
 
 class _Discard(io.TextIOBase):
@@ -207,7 +196,7 @@ def _read_tlog(path: Path) -> _Raw:
     attitudes = _rows(mine("ATTITUDE_QUATERNION"))
     euler = np.asarray(mine("ATTITUDE"), dtype=np.float64).reshape(-1, 4)
     if len(attitudes) == 0 and len(euler):  # ArduPilot streams ATTITUDE only, by default
-        attitudes = np.column_stack([euler[:, 0], _euler_zyx_to_quaternion(
+        attitudes = np.column_stack([euler[:, 0], quaternions_from_euler(
             euler[:, 1], euler[:, 2], euler[:, 3])])
     sender = "" if autopilot is None else f" of system {autopilot[0]} component {autopilot[1]}"
     return _Raw(positions, attitudes, f"GLOBAL_POSITION_INT{sender}",
@@ -314,7 +303,7 @@ def _read_bin(path: Path) -> _Raw:
         att = _dataflash_columns(data, index, "ATT", ("TimeUS", "Roll", "Pitch", "Yaw"))
         attitudes = np.empty((0, 5))
         if att is not None and len(att["TimeUS"]):
-            q = _euler_zyx_to_quaternion(*(np.radians(att[c]) for c in ("Roll", "Pitch", "Yaw")))
+            q = quaternions_from_euler(*(np.radians(att[c]) for c in ("Roll", "Pitch", "Yaw")))
             attitudes = np.column_stack([att["TimeUS"] / 1e6, q])
         return _Raw(positions, attitudes, looked_for_positions, "ATT records (Roll, Pitch, Yaw)",
                     notes, truncated,

@@ -35,6 +35,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
 
@@ -43,6 +44,7 @@ from numpy.typing import NDArray
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.geo import LocalNed
+from companion.rotation import quaternion_from_euler
 from companion.vehicle.signing import Signature, check_signature, new_signer
 from sitl import events
 from sitl.clock import SimClock
@@ -52,7 +54,6 @@ from sitl.vehicle import (
     Target,
     VehicleLimits,
     VehicleState,
-    quaternion_from_euler,
     step,
     wrap_rad,
 )
@@ -303,12 +304,19 @@ class _Setpoint:
 
 
 class MockAutopilot:
-    """The simulated autopilot, its vehicle and its link; `start()` runs it in a thread."""
+    """The simulated autopilot, its vehicle and its link; `start()` runs it in a thread.
+
+    `on_setpoint` (constructor argument or attribute, default None), if set, is called with the
+    SITL clock time of every setpoint the autopilot accepts, on its thread and under its lock:
+    an observer for measurements (benchmarks/soak.py), which must return at once.
+    """
 
     def __init__(
-        self, config: AutopilotConfig, link: UdpLink, clock: SimClock, geo: LocalNed
+        self, config: AutopilotConfig, link: UdpLink, clock: SimClock, geo: LocalNed,
+        on_setpoint: Callable[[float], None] | None = None,
     ) -> None:
         self.config = config
+        self.on_setpoint = on_setpoint
         self.link = link
         self.clock = clock
         self.geo = geo
@@ -877,6 +885,8 @@ class MockAutopilot:
         self._setpoint_times.append(self._t_s)
         if self.config.flavour is Flavour.ARDUPILOT and self._behaviour is Behaviour.OFFBOARD:
             self._guided_takeoff_alt = None  # setpoints override a GUIDED take-off
+        if self.on_setpoint is not None:
+            self.on_setpoint(self._last_setpoint_clock_s)
 
     def _setpoint_local(self, msg: mavlink.MAVLink_message) -> None:
         mask = msg.type_mask

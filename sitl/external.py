@@ -39,9 +39,10 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.errors import ConfigError, InputError
 from companion.geo import LocalNed
+from companion.rotation import quaternion_from_euler
 from companion.sim.scenario import Scenario
 from companion.vehicle.pose_buffer import PoseBuffer
-from companion.vision.camera import BodyPose, quaternion_from_euler
+from companion.vision.camera import BodyPose
 from sitl.camera import Renderer
 from sitl.faults import CAMERA_FAULTS, FaultPlan
 from sitl.runner import CameraLoop, FrameCounts, Shot, render_scene

@@ -13,6 +13,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.rotation import quaternion_from_euler
+
 FloatArray = NDArray[np.float64]
 
 GRAVITY_M_S2 = 9.80665
@@ -67,20 +69,6 @@ class VehicleState:
         """Body (FRD) to NED rotation, Hamilton, scalar first (ZYX Euler: yaw, pitch, roll)."""
         roll, pitch = self.roll_pitch_rad()
         return quaternion_from_euler(roll, pitch, self.yaw_rad)
-
-
-def quaternion_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float
-                          ) -> tuple[float, float, float, float]:
-    """Body (FRD) to NED rotation of ZYX Euler angles, Hamilton, scalar first."""
-    cr, sr = math.cos(roll_rad / 2), math.sin(roll_rad / 2)
-    cp, sp = math.cos(pitch_rad / 2), math.sin(pitch_rad / 2)
-    cy, sy = math.cos(yaw_rad / 2), math.sin(yaw_rad / 2)
-    return (
-        cr * cp * cy + sr * sp * sy,
-        sr * cp * cy - cr * sp * sy,
-        cr * sp * cy + sr * cp * sy,
-        cr * cp * sy - sr * sp * cy,
-    )
 
 
 def wrap_rad(angle_rad: float) -> float:

@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.errors import ConfigError, InputError
+from companion.rotation import quaternion_from_euler, rotation_from_quaternion, rotation_zyx
 
 __all__ = [
     "MIN_CAMERA_HEIGHT_M",
@@ -214,7 +215,7 @@ class CameraModel:
     def rotation_body_camera(self) -> FloatArray:
         """R_body_cam: camera (OpenCV) vectors into body FRD, from the mount angles."""
         roll, pitch, yaw = (math.radians(a) for a in self.mount_rpy_deg)
-        return _rotation_zyx(roll, pitch, yaw) @ _R_DOWN
+        return rotation_zyx(roll, pitch, yaw) @ _R_DOWN
 
 
 def _check_distortion_invertible(camera: CameraModel) -> None:
@@ -238,42 +239,8 @@ def _check_distortion_invertible(camera: CameraModel) -> None:
 
 
 # ---------------------------------------------------------------------------------------------
-# Rotations, distortion, projection
+# Distortion, projection
 # ---------------------------------------------------------------------------------------------
-
-def _rotation_zyx(roll_rad: float, pitch_rad: float, yaw_rad: float) -> FloatArray:
-    """Rz(yaw) @ Ry(pitch) @ Rx(roll): the aerospace sequence, rotating body into parent."""
-    cr, sr = math.cos(roll_rad), math.sin(roll_rad)
-    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
-    cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
-    return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-                     [-sp, cp * sr, cp * cr]])
-
-
-def quaternion_from_euler(roll_rad: float, pitch_rad: float,
-                          yaw_rad: float) -> tuple[float, float, float, float]:
-    """Hamilton q_wxyz of the ZYX (yaw, pitch, roll) attitude: q = qz(yaw) qy(pitch) qx(roll)."""
-    cr, sr = math.cos(0.5 * roll_rad), math.sin(0.5 * roll_rad)
-    cp, sp = math.cos(0.5 * pitch_rad), math.sin(0.5 * pitch_rad)
-    cy, sy = math.cos(0.5 * yaw_rad), math.sin(0.5 * yaw_rad)
-    return (cr * cp * cy + sr * sp * sy,
-            sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy,
-            cr * cp * sy - sr * sp * cy)
-
-
-def rotation_from_quaternion(q_wxyz: Sequence[float]) -> FloatArray:
-    """The 3x3 rotation matrix of a Hamilton quaternion (normalised first)."""
-    w, x, y, z = (float(c) for c in q_wxyz)
-    n = math.sqrt(w * w + x * x + y * y + z * z)
-    if not math.isfinite(n) or n == 0.0:
-        raise InputError(f"quaternion {tuple(q_wxyz)} has no rotation")
-    w, x, y, z = w / n, x / n, y / n, z / n
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-
 
 def camera_pose_ned(camera: CameraModel, pose: BodyPose) -> tuple[FloatArray, FloatArray]:
     """(R_ned_cam (3,3), camera centre (3,) NED) of the camera on a vehicle at `pose`.
