@@ -1,19 +1,25 @@
 """Write docs/reliability.md from the figures the reliability tests recorded.
 
 Run the tests first (`make reliability` does both): each fault, bad-input and load test writes
-its measured figures to out/reliability/NAME.json (sitl/figures.py). This script turns the
+its measured figures to NAME.json in the figures folder (sitl/figures.py: $COMPANION_FIGURES_DIR,
+which tests/conftest.py sets to the checkout's out/reliability when unset). This script turns the
 latest of them into the tables of docs/reliability.md; a figure that was not measured is shown
 as "not run", never invented.
 
     python benchmarks/reliability_report.py [--figures DIR] [--out FILE]
+
+--figures defaults to $COMPANION_FIGURES_DIR, else the checkout's out/reliability.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 from pathlib import Path
 from typing import Any
+
+from sitl.figures import FIGURES_DIR_ENV
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -121,7 +127,8 @@ def report(figures: dict[str, dict[str, Any]]) -> str:
 def main() -> None:
     """Read the figures, write the report."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--figures", type=Path, default=ROOT / "out" / "reliability")
+    parser.add_argument("--figures", type=Path,
+                        default=os.environ.get(FIGURES_DIR_ENV) or ROOT / "out" / "reliability")
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "reliability.md")
     args = parser.parse_args()
     args.out.write_text(report(_load(args.figures)))

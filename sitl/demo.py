@@ -13,7 +13,7 @@ import argparse
 import asyncio
 import dataclasses
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -90,12 +90,16 @@ class DemoResult:
 async def fly(scenario: Scenario, *, speedup: float, out_dir: Path, faults: str = "",
               announce: Any = None, stop_after_s: float | None = None,
               signing_key: bytes | None = None, mavlink_port: int | None = None,
+              on_sitl: Callable[[Sitl], None] | None = None,
               **overrides: dict[str, Any]) -> DemoResult:
     """One whole SITL mission flown by the service (stopped at stop_after_s simulated s); with
     signing_key the autopilot accepts only signed MAVLink (configure the key file to match);
-    mavlink_port is where the service's MAVSDK listens (default: a free one)."""
+    mavlink_port is where the service's MAVSDK listens (default: a free one); on_sitl, if given,
+    is called with the Sitl once it is built and before it starts (to attach probes)."""
     sitl = Sitl(scenario, speedup=speedup, faults=parse_faults(faults),
                 mavlink_port=mavlink_port or free_udp_port(), signing_key=signing_key)
+    if on_sitl is not None:
+        on_sitl(sitl)
     with sitl:
         config = service_config(scenario, sitl, out_dir, **overrides)
         service = Service(config, camera=scenario.camera, clock=sitl.clock.now_s,

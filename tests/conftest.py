@@ -1,12 +1,22 @@
-"""Fixtures shared by the test files."""
+"""Fixtures shared by the test files; the session's figures folder (sitl/figures.py)."""
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 
+from sitl.figures import FIGURES_DIR_ENV
 from tests.mavlink_client import Client
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Figures go to the checkout's out/reliability (for `make reliability`) unless set."""
+    os.environ.setdefault(FIGURES_DIR_ENV, str(ROOT / "out" / "reliability"))
 
 
 @pytest.fixture

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from companion.replay import replay_run
@@ -29,6 +30,8 @@ from sitl.figures import record_figure
 from sitl.link import free_udp_port
 from sitl.modes import Behaviour
 from sitl.runner import Sitl
+
+pytestmark = pytest.mark.sitl
 
 ROOT = Path(__file__).resolve().parent.parent
 SPEEDUP = 4.0

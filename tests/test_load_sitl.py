@@ -25,6 +25,8 @@ from companion.vehicle.mavsdk_link import route_mavsdk_log
 from sitl.cli import sitl_scenarios
 from sitl.demo import fly
 
+pytestmark = pytest.mark.sitl
+
 SPEEDUP = 1.0
 FLY_S = 50.0  # take-off and about 40 s of search
 PERIOD_S = 0.1  # mission.setpoint_rate_hz = 10

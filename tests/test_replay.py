@@ -27,6 +27,8 @@ from sitl.cli import sitl_scenarios
 from sitl.demo import fly
 from tests.logwriters import write_bin, write_ulg
 
+pytestmark = pytest.mark.sitl
+
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:

@@ -20,6 +20,8 @@ from sitl.figures import record_figure
 from sitl.modes import Behaviour
 from sitl.runner import autopilot_config
 
+pytestmark = pytest.mark.sitl
+
 SPEEDUP = 4.0
 SETPOINT_PERIOD_S = 0.1  # mission.setpoint_rate_hz = 10
 HEARTBEAT_PERIOD_S = 1.0  # the mode reaches the service in the autopilot's heartbeat

@@ -48,6 +48,8 @@ from sitl.modes import Flavour
 from sitl.runner import Sitl
 from tests.mavlink_client import Client
 
+pytestmark = pytest.mark.sitl
+
 SPEEDUP = 4.0
 GEO = LocalNed(37.2, -80.4, 600.0)
 ARM = mavlink.MAV_CMD_COMPONENT_ARM_DISARM

@@ -33,6 +33,8 @@ from sitl.external import ESTIMATE, HIL_STATE, SIMSTATE, ExternalSitl, parse_aut
 from sitl.link import free_udp_port
 from sitl.stream import MjpegReader
 
+pytestmark = pytest.mark.sitl
+
 FloatArray = NDArray[np.float64]
 
 BOOT_AGE_S = 1234.5  # the fake autopilot booted this long before the test: a clock of its own

@@ -35,6 +35,8 @@ from sitl.modes import Behaviour, Flavour, decode_custom_mode, encode
 from sitl.runner import autopilot_config
 from tests.mavlink_client import POSITION_ONLY, Client
 
+pytestmark = pytest.mark.sitl
+
 GEO = LocalNed(37.2, -80.4, 600.0)
 ACCEPTED, DENIED = mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_DENIED
 REJECTED = mavlink.MAV_RESULT_TEMPORARILY_REJECTED

@@ -22,6 +22,8 @@ from sitl.clock import SimClock
 from sitl.link import UdpLink, free_udp_port
 from sitl.modes import Behaviour, Flavour
 
+pytestmark = pytest.mark.sitl
+
 SPEEDUP = 3.0
 ALT_M = 8.0
 GEO = LocalNed(37.2, -80.4, 600.0)

@@ -26,6 +26,8 @@ from sitl.stream import MjpegReader
 from sitl.world import TargetWorld, clutter_tags
 from tests.mavlink_client import Client
 
+pytestmark = pytest.mark.sitl
+
 SPEEDUP = 4.0
 
 

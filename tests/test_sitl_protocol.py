@@ -16,6 +16,8 @@ from sitl.link import UdpLink
 from sitl.modes import Behaviour, Flavour, decode_custom_mode, encode
 from tests.mavlink_client import Client
 
+pytestmark = pytest.mark.sitl
+
 SPEEDUP = 10.0
 GEO = LocalNed(37.2, -80.4, 600.0)
 ACCEPTED, DENIED = mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_DENIED

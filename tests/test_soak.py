@@ -1,4 +1,4 @@
-"""A short soak: the code of `benchmarks/soak.py` (sitl/soak.py) for about 3 simulated minutes.
+"""A short soak: the code of `benchmarks/soak.py` for about 3 simulated minutes.
 
 The service searches the soak-30-targets scenario (30 walking targets, 0.2 false tags per
 frame) for SEARCH_S simulated seconds at SPEEDUP, then lands. One run serves every test here:
@@ -12,8 +12,9 @@ by a few milliseconds of wall time in 2 of 3 runs). As the autopilot receives
 them, the gaps also carry the scheduling of MAVSDK's server and the SITL's threads on this
 2-core machine, four times magnified (a gap of 0.16 s was seen in a few runs), so there the test
 only asserts that the stream never lapses into the offboard failsafe. The 30-minute soak
-(benchmarks/soak.py) reports both. The figures go to out/reliability/soak-short.json for
-docs/reliability.md.
+(benchmarks/soak.py) reports both. The figures go to soak-short.json in the figures folder
+(tests/conftest.py: out/reliability) for docs/reliability.md. The tests that fly are marked
+`sitl`; the others check the soak's arithmetic.
 """
 
 from __future__ import annotations
@@ -24,8 +25,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sitl.figures import record_figure
-from sitl.soak import (
+from benchmarks.soak import (
     SoakOptions,
     SoakReport,
     gap_stats,
@@ -37,6 +37,7 @@ from sitl.soak import (
     soak_scenario,
     stream_pauses,
 )
+from sitl.figures import record_figure
 
 SEARCH_S = 150.0  # with take-off and landing: about 185 simulated seconds
 SPEEDUP = 3.0  # about 65 s of wall time
@@ -58,6 +59,7 @@ def _figures(report: SoakReport) -> str:
     return "\n".join(report_lines(report))
 
 
+@pytest.mark.sitl
 def test_the_service_finished_cleanly(report: SoakReport) -> None:
     assert report.mission_state == "done", _figures(report)
     assert report.landed and not report.errors, _figures(report)
@@ -65,22 +67,26 @@ def test_the_service_finished_cleanly(report: SoakReport) -> None:
     assert report.threads_left == [] and report.fds_left <= 0, _figures(report)
 
 
+@pytest.mark.sitl
 def test_memory_does_not_grow_after_the_warm_up(report: SoakReport) -> None:
     assert len(report.rss_mb) >= 50  # one sample every RSS_EVERY_S simulated seconds
     assert report.rss_growth_after_warmup_mb < RSS_GROWTH_LIMIT_MB, _figures(report)
 
 
+@pytest.mark.sitl
 def test_the_component_count_never_exceeds_the_cap(report: SoakReport) -> None:
     assert report.steps > 0.3 * report.steps_due, _figures(report)  # the filter did run
     assert report.components_max <= report.components_cap, _figures(report)
 
 
+@pytest.mark.sitl
 def test_the_setpoint_stream_never_lapses_into_the_offboard_failsafe(report: SoakReport) -> None:
     timeout_s = report.scenario.vehicle.offboard_loss_timeout_s
     assert report.received.count > 0.5 * SEARCH_S / report.setpoint_period_s
     assert report.received.max_s < timeout_s, _figures(report)
 
 
+@pytest.mark.sitl
 def test_the_setpoint_stream_never_misses_its_period_by_more_than_half(
         report: SoakReport) -> None:
     assert report.sent.limit_s == pytest.approx(1.5 * report.setpoint_period_s)

@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from companion.notify import Notifier
 from companion.service import Service
@@ -22,6 +23,8 @@ from sitl.demo import service_config
 from sitl.figures import record_figure
 from sitl.link import free_udp_port
 from sitl.runner import Sitl
+
+pytestmark = pytest.mark.sitl
 
 ROOT = Path(__file__).resolve().parent.parent
 UNIT = ROOT / "systemd" / "companion.service"

@@ -22,6 +22,8 @@ from sitl.clock import SimClock
 from sitl.link import UdpLink, free_udp_port
 from sitl.modes import Behaviour, Flavour
 
+pytestmark = pytest.mark.sitl
+
 SPEEDUP = 3.0
 GEO = LocalNed(47.397742, 8.545594, 488.0)
 

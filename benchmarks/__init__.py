@@ -1,0 +1,1 @@
+"""Speed and reliability measurements of the service (scripts; not installed)."""
