@@ -41,7 +41,8 @@ from companion.keys import (
     section_table,
     unknown_key,
 )
-from companion.sim.scenario import FILTER_KEYS, FilterSpec
+from companion.plan.planners import PlannerKind
+from companion.sat.params import FILTER_KEYS, FilterSpec, FovKind
 
 __all__ = ["ServiceConfig", "load_config", "parse_config", "schema_markdown"]
 
@@ -111,7 +112,7 @@ class EstimatorConfig:
     rate_hz: float
     p_detect: float
     clutter_per_scan: float
-    fov: Literal["camera", "disk"]
+    fov: FovKind  # CAMERA or DISK
     fov_radius_m: float
     footprint_margin_m: float
     max_range_m: float
@@ -125,7 +126,7 @@ class SearchConfig:
     utm_epsg: int
     altitude_m: float  # above home
     speed_m_s: float
-    planner: Literal["lawnmower", "nearest-gaussian", "largest-gaussian"]
+    planner: PlannerKind
     lane_spacing_m: float
     sweeps: int
     heading_deg: float
@@ -189,141 +190,141 @@ class ServiceConfig:
 
 SECTIONS: dict[str, tuple[Key, ...]] = {
     "vehicle": (
-        Key("connection", "connection", Text(), "udpin://127.0.0.1:14540",
+        Key("connection", Text(), "udpin://127.0.0.1:14540",
             "MAVSDK connection URL: udpin://HOST:PORT, tcpout://HOST:PORT, "
             "serial:///dev/ttyAMA0:921600"),
-        Key("connect_timeout_s", "connect_timeout_s", Float(gt=0), 30.0,
+        Key("connect_timeout_s", Float(gt=0), 30.0,
             "seconds to wait for the autopilot's heartbeat"),
-        Key("telemetry_rate_hz", "telemetry_rate_hz", Float(gt=0, le=200), 20.0,
+        Key("telemetry_rate_hz", Float(gt=0, le=200), 20.0,
             "rate asked for position and attitude (an ArduPilot sends nothing unasked)"),
-        Key("signing_key_file", "signing_key_file", Text(), Derived("none: unsigned MAVLink"),
+        Key("signing_key_file", Text(), Derived("none: unsigned MAVLink"),
             "MAVLink 2 signing key (64 hex digits, mode 0600): the link to the autopilot goes "
             "through a signing relay (docs/signing.md)"),
     ),
     "camera": (
-        Key("source", "source", Text(), REQUIRED,
+        Key("source", Text(), REQUIRED,
             "what cv2.VideoCapture opens (device index, /dev/videoN, GStreamer pipeline, "
             "rtsp:// or http:// URL, video file) or the SITL's MJPEG URL"),
-        Key("kind", "kind", Choice("auto", "opencv", "mjpeg"), "auto",
+        Key("kind", Choice("auto", "opencv", "mjpeg"), "auto",
             "how to read the source; auto: mjpeg for .../stream.mjpg URLs, else OpenCV"),
-        Key("calibration", "calibration", Text(), Derived("none: width_px, height_px, hfov_deg"),
+        Key("calibration", Text(), Derived("none: width_px, height_px, hfov_deg"),
             "OpenCV calibration file (YAML/XML: image_width, image_height, camera_matrix, "
             "distortion_coefficients); relative to this file"),
-        Key("width_px", "width_px", Int(ge=16), 640, "image width without a calibration file"),
-        Key("height_px", "height_px", Int(ge=16), 480, "image height without a calibration file"),
-        Key("hfov_deg", "hfov_deg", Float(ge=1, le=170), 90.0,
+        Key("width_px", Int(ge=16), 640, "image width without a calibration file"),
+        Key("height_px", Int(ge=16), 480, "image height without a calibration file"),
+        Key("hfov_deg", Float(ge=1, le=170), 90.0,
             "horizontal field of view without a calibration file (no distortion)"),
-        Key("mount_rpy_deg", "mount_rpy_deg", Floats("[roll, pitch, yaw]", _ANGLE, _ANGLE, _ANGLE),
+        Key("mount_rpy_deg", Floats("[roll, pitch, yaw]", _ANGLE, _ANGLE, _ANGLE),
             [0.0, 0.0, 0.0], "mounting relative to straight down, top of the image forward"),
-        Key("mount_offset_m", "mount_offset_m",
+        Key("mount_offset_m",
             Floats("[forward, right, down]", _OFFSET, _OFFSET, _OFFSET), [0.0, 0.0, 0.0],
             "camera centre in the body frame, metres"),
-        Key("latency_s", "latency_s", Float(ge=0, le=5), 0.0,
+        Key("latency_s", Float(ge=0, le=5), 0.0,
             "exposure-to-receipt delay of a source without capture times"),
     ),
     "detector": (
-        Key("family", "family", Choice(*FAMILIES), "tag36h11", "AprilTag family"),
-        Key("decimate", "decimate", Float(ge=1, le=8), 1.0,
+        Key("family", Choice(*FAMILIES), "tag36h11", "AprilTag family"),
+        Key("decimate", Float(ge=1, le=8), 1.0,
             "quad_decimate: faster, but small tags are lost (see docs/sitl.md)"),
-        Key("threads", "threads", Int(ge=1), 2, "detector threads"),
-        Key("min_decision_margin", "min_decision_margin", Float(ge=0), 20.0,
+        Key("threads", Int(ge=1), 2, "detector threads"),
+        Key("min_decision_margin", Float(ge=0), 20.0,
             "detections with a lower decision margin are dropped"),
-        Key("allowed_ids", "allowed_ids", Ints(ge=0), [],
+        Key("allowed_ids", Ints(ge=0), [],
             "keep only these tag ids (empty: all); ids never reach the estimator"),
-        Key("pixel_std_px", "pixel_std_px", Float(gt=0, le=50), 1.0,
+        Key("pixel_std_px", Float(gt=0, le=50), 1.0,
             "standard deviation of a detected tag centre, pixels"),
     ),
     "pose": (
-        Key("horizontal_std_m", "horizontal_std_m", Float(ge=0, le=100), 0.5,
+        Key("horizontal_std_m", Float(ge=0, le=100), 0.5,
             "least standard deviation of the horizontal position: the autopilot's own figure "
             "(ODOMETRY, ESTIMATOR_STATUS or GPS_RAW_INT) is used when larger"),
-        Key("vertical_std_m", "vertical_std_m", Float(ge=0, le=100), 0.3,
+        Key("vertical_std_m", Float(ge=0, le=100), 0.3,
             "least standard deviation of the height above the ground (same sources)"),
-        Key("attitude_std_deg", "attitude_std_deg", Float(ge=0, le=30), 1.0,
+        Key("attitude_std_deg", Float(ge=0, le=30), 1.0,
             "least standard deviation of roll and pitch (ODOMETRY's, when larger)"),
-        Key("heading_std_deg", "heading_std_deg", Float(ge=0, le=90), 2.0,
+        Key("heading_std_deg", Float(ge=0, le=90), 2.0,
             "least standard deviation of the heading (ODOMETRY's, when larger)"),
-        Key("camera_rest_height_m", "camera_rest_height_m", Float(ge=-5, le=5), 0.0,
+        Key("camera_rest_height_m", Float(ge=-5, le=5), 0.0,
             "the camera's height above ground with the vehicle at rest, added to the relative "
             "altitude (zero at rest) when no rangefinder or terrain height is known"),
-        Key("max_gap_s", "max_gap_s", Float(gt=0, le=10), 0.5,
+        Key("max_gap_s", Float(gt=0, le=10), 0.5,
             "a frame whose capture time falls in a longer gap of telemetry has no pose"),
-        Key("glitch_gate_m", "glitch_gate_m", Float(gt=0, le=1000), 8.0,
+        Key("glitch_gate_m", Float(gt=0, le=1000), 8.0,
             "a position further than this from where the velocity puts it is a GPS glitch: "
             "refused, and frames taken then are blind"),
-        Key("glitch_accept_after_s", "glitch_accept_after_s", Float(gt=0, le=600), 10.0,
+        Key("glitch_accept_after_s", Float(gt=0, le=600), 10.0,
             "a jump that lasts this long is believed (the estimate was reset)"),
     ),
     "estimator": (
-        Key("rate_hz", "rate_hz", Float(gt=0, le=30), 2.0,
+        Key("rate_hz", Float(gt=0, le=30), 2.0,
             "estimator steps per second, each on the newest frame (the others are dropped)"),
-        Key("p_detect", "p_detect", Float(ge=0, le=1), 0.95, "p(D | in the footprint)"),
-        Key("clutter_per_scan", "clutter_per_scan", Float(ge=0), 0.1,
+        Key("p_detect", Float(ge=0, le=1), 0.95, "p(D | in the footprint)"),
+        Key("clutter_per_scan", Float(ge=0), 0.1,
             "expected false detections per step"),
-        Key("fov", "fov", Choice("camera", "disk"), "camera",
+        Key("fov", Choice(FovKind.CAMERA, FovKind.DISK), "camera",
             "sensing region: the camera footprint this frame covered, or the paper's disk"),
-        Key("fov_radius_m", "fov_radius_m", Float(gt=0), 6.0, "disk radius for fov = \"disk\""),
-        Key("footprint_margin_m", "footprint_margin_m", Float(ge=0, le=10), 0.5,
+        Key("fov_radius_m", Float(gt=0), 6.0, "disk radius for fov = \"disk\""),
+        Key("footprint_margin_m", Float(ge=0, le=10), 0.5,
             "the footprint shrunk by this much: a tag cut by the image edge is not detected "
             "(a 0.5 m tag printed with its quiet zone reaches 0.44 m from its centre)"),
-        Key("max_range_m", "max_range_m", Float(gt=0), 100.0,
+        Key("max_range_m", Float(gt=0), 100.0,
             "ground points farther than this from the vehicle are out of the footprint"),
     ),
     "filter": FILTER_KEYS,
     "search": (
-        Key("area", "area_latlon", Points(_LAT_LON), REQUIRED,
-            "the search area polygon; the lawn mower covers its bounding box"),
-        Key("utm_epsg", "utm_epsg", Int(ge=0), Derived("the UTM zone of the area's centre"),
+        Key("area", Points(_LAT_LON), REQUIRED,
+            "the search area polygon; the lawn mower covers its bounding box", field="area_latlon"),
+        Key("utm_epsg", Int(ge=0), Derived("the UTM zone of the area's centre"),
             "EPSG code of the UTM zone for the whole flight (326xx north, 327xx south)"),
-        Key("altitude_m", "altitude_m", Float(gt=0, le=500), 8.0, "search altitude above home"),
-        Key("speed_m_s", "speed_m_s", Float(gt=0, le=30), 1.0, "search speed"),
-        Key("planner", "planner", Choice("lawnmower", "nearest-gaussian", "largest-gaussian"),
+        Key("altitude_m", Float(gt=0, le=500), 8.0, "search altitude above home"),
+        Key("speed_m_s", Float(gt=0, le=30), 1.0, "search speed"),
+        Key("planner", Choice(*PlannerKind),
             "lawnmower", "path planner"),
-        Key("lane_spacing_m", "lane_spacing_m", Float(gt=0), 8.0, "lawn-mower lane spacing"),
-        Key("sweeps", "sweeps", Int(ge=1), 1, "lawn-mower passes over the area"),
-        Key("heading_deg", "heading_deg", _ANGLE, 0.0, "yaw held while searching"),
-        Key("expected_targets", "expected_targets", Int(ge=1), Derived("unknown"),
+        Key("lane_spacing_m", Float(gt=0), 8.0, "lawn-mower lane spacing"),
+        Key("sweeps", Int(ge=1), 1, "lawn-mower passes over the area"),
+        Key("heading_deg", _ANGLE, 0.0, "yaw held while searching"),
+        Key("expected_targets", Int(ge=1), Derived("unknown"),
             "targets to confirm before mission.end = \"targets\" ends the mission"),
     ),
     "safety": (
-        Key("geofence", "geofence_latlon", Points(_LAT_LON), Derived("the search area"),
-            "no setpoint leaves this polygon"),
-        Key("min_alt_m", "min_alt_m", Float(gt=0), 2.0, "lowest setpoint above home"),
-        Key("max_alt_m", "max_alt_m", Float(gt=0), 30.0, "highest setpoint above home"),
-        Key("max_speed_h_m_s", "max_speed_h_m_s", Float(gt=0, le=30), 3.0,
+        Key("geofence", Points(_LAT_LON), Derived("the search area"),
+            "no setpoint leaves this polygon", field="geofence_latlon"),
+        Key("min_alt_m", Float(gt=0), 2.0, "lowest setpoint above home"),
+        Key("max_alt_m", Float(gt=0), 30.0, "highest setpoint above home"),
+        Key("max_speed_h_m_s", Float(gt=0, le=30), 3.0,
             "setpoints move at most this fast horizontally"),
-        Key("max_speed_v_m_s", "max_speed_v_m_s", Float(gt=0, le=10), 1.0,
+        Key("max_speed_v_m_s", Float(gt=0, le=10), 1.0,
             "setpoints move at most this fast vertically"),
     ),
     "mission": (
-        Key("auto_arm_takeoff", "auto_arm_takeoff", Bool(), False,
+        Key("auto_arm_takeoff", Bool(), False,
             "arm and take off by itself (default: the pilot does)"),
-        Key("auto_offboard", "auto_offboard", Bool(), False,
+        Key("auto_offboard", Bool(), False,
             "enter OFFBOARD by itself once, when ready (default: the pilot selects it)"),
-        Key("arm_retry_s", "arm_retry_s", Float(gt=0, le=600), 20.0,
+        Key("arm_retry_s", Float(gt=0, le=600), 20.0,
             "an arm the autopilot refuses is asked again every 2 s for this long"),
-        Key("resume_on_pilot_offboard", "resume_on_pilot_offboard", Bool(), True,
+        Key("resume_on_pilot_offboard", Bool(), True,
             "after a pilot takeover, resume when the pilot selects OFFBOARD again"),
-        Key("end", "end", Choice("covered", "targets", "time"), "covered",
+        Key("end", Choice("covered", "targets", "time"), "covered",
             "the mission ends when the lawn mower is done, expected targets are confirmed, or "
             "at the time limit (the time limit always applies)"),
-        Key("time_limit_s", "time_limit_s", Float(gt=0), 900.0, "longest search"),
-        Key("end_action", "end_action", Choice("hold", "land", "rtl"), "land",
+        Key("time_limit_s", Float(gt=0), 900.0, "longest search"),
+        Key("end_action", Choice("hold", "land", "rtl"), "land",
             "what to ask the autopilot at the end"),
-        Key("setpoint_rate_hz", "setpoint_rate_hz", Float(gt=2, le=50), 10.0,
+        Key("setpoint_rate_hz", Float(gt=2, le=50), 10.0,
             "setpoint stream rate (PX4 needs more than 2 Hz)"),
     ),
     "output": (
-        Key("dir", "dir", Text(), "runs", "folder for the run's reports; relative to this file"),
-        Key("plots", "plots", Bool(), True, "write the study's plots at the end"),
-        Key("frames", "frames", Choice("off", "jpg", "png"), "off",
+        Key("dir", Text(), "runs", "folder for the run's reports; relative to this file"),
+        Key("plots", Bool(), True, "write the study's plots at the end"),
+        Key("frames", Choice("off", "jpg", "png"), "off",
             "keep each processed frame as an image (png: lossless, replay re-detects exactly)"),
-        Key("frames_budget_mb", "frames_budget_mb", Float(gt=0), 500.0,
+        Key("frames_budget_mb", Float(gt=0), 500.0,
             "disk for one run's frames; past it only detections are kept, with a log line"),
-        Key("jpeg_quality", "jpeg_quality", Int(ge=1, le=100), 90, "JPEG quality of kept frames"),
-        Key("max_runs_mb", "max_runs_mb", Float(gt=0), 5000.0,
+        Key("jpeg_quality", Int(ge=1, le=100), 90, "JPEG quality of kept frames"),
+        Key("max_runs_mb", Float(gt=0), 5000.0,
             "all run folders together; the oldest are removed at start to stay under it"),
-        Key("min_free_mb", "min_free_mb", Float(ge=0), 500.0,
+        Key("min_free_mb", Float(ge=0), 500.0,
             "free disk to leave: old runs are removed at start, frames stop below it"),
     ),
 }

@@ -2,8 +2,9 @@
 
 The scenario files (companion.sim.scenario) and the service configuration (companion.config)
 declare their keys with `Key` and a value `Kind`; `read_table` checks a TOML table against the
-declarations and every error names the dotted key (`ConfigError`). `markdown_rows` writes the
-reference tables from the same declarations.
+declarations and every error names the dotted key (`ConfigError`; all of a table's errors at
+once as `AggregateConfigError`). `markdown_rows` writes the reference tables from the same
+declarations.
 """
 
 from __future__ import annotations
@@ -15,13 +16,15 @@ import tomllib
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from enum import Enum
+from functools import partial
 from pathlib import Path
 from typing import Any, Generic, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.errors import ConfigError
+from companion.errors import ConfigError, ErrorCollector
 
 FloatArray = NDArray[np.float64]
 T = TypeVar("T")
@@ -160,15 +163,23 @@ class Text(Kind[str]):
         return raw
 
 
-class Choice(Kind[str]):
-    def __init__(self, *options: str) -> None:
-        self.options = options
-        self.doc = "one of " + ", ".join(toml_text(o) for o in options)
+class Choice(Kind[T]):
+    """One of a fixed set of options: strings, or members of a str-valued Enum (parsed to them)."""
 
-    def parse(self, key: str, raw: object) -> str:
-        if not isinstance(raw, str) or raw not in self.options:
+    def __init__(self, *options: T) -> None:
+        self.options = options
+        self.texts = [o.value if isinstance(o, Enum) else o for o in options]
+        self.doc = "one of " + ", ".join(toml_text(t) for t in self.texts)
+
+    def parse(self, key: str, raw: object) -> T:
+        if isinstance(raw, Enum):
+            raw = raw.value
+        if not isinstance(raw, str) or raw not in self.texts:
             raise ConfigError(key, f"must be {self.doc}, got {describe(raw)}")
-        return raw
+        return self.options[self.texts.index(raw)]
+
+    def dump(self, value: T) -> object:
+        return value.value if isinstance(value, Enum) else value
 
 
 class Pair(Kind[tuple[float, float]]):
@@ -310,15 +321,19 @@ REQUIRED = Derived("required")
 
 @dataclass(frozen=True, slots=True)
 class Key:
-    """One scenario key: TOML name (leaf), dataclass field, kind, default, doc."""
+    """One key: TOML name (leaf), kind, default, doc; its dataclass field is the leaf by default."""
 
     leaf: str
-    field: str
     kind: Kind[Any]
     default: object
     doc: str
+    field: str = ""  # the dataclass field it fills, when not named as the key (dt -> dt_s)
     project: bool = False  # the project's addition to scenario-format.md
     stored: bool = True  # False: only shapes other fields (camera.hfov_deg), not written back
+
+    def __post_init__(self) -> None:
+        if not self.field:
+            object.__setattr__(self, "field", self.leaf)
 
 
 def join_key(prefix: str, leaf: str) -> str:
@@ -332,22 +347,27 @@ def unknown_key(key: str, leaf: str, known: Sequence[str]) -> ConfigError:
 
 
 def read_table(table: Mapping[Any, Any], prefix: str, keys: Sequence[Key]) -> dict[str, Any]:
-    """Field name -> checked value for each declared key (None for a derived default)."""
+    """Field name -> checked value for each declared key (None for a derived default).
+
+    Every bad key of the table is reported: one ConfigError, or AggregateConfigError for several.
+    """
     known = [k.leaf for k in keys]
+    errors = ErrorCollector()
     for leaf in table:
         if leaf not in known:
-            raise unknown_key(join_key(prefix, str(leaf)), str(leaf), known)
+            errors.add(unknown_key(join_key(prefix, str(leaf)), str(leaf), known))
     values: dict[str, Any] = {}
     for k in keys:
         key = join_key(prefix, k.leaf)
         if k.leaf in table:
-            values[k.field] = k.kind.parse(key, table[k.leaf])
+            values[k.field] = errors.attempt(partial(k.kind.parse, key, table[k.leaf]))
         elif k.default is REQUIRED:
-            raise ConfigError(key, "is required")
+            errors.add(ConfigError(key, "is required"))
         elif isinstance(k.default, Derived):
             values[k.field] = None
         else:
             values[k.field] = k.kind.parse(key, k.default)
+    errors.raise_any()
     return values
 
 

@@ -30,9 +30,9 @@ from companion.sat.filter import SatParams, SatState, Scan, initial_state, step
 from companion.sat.fov import ConvexPolygon, Disk, Region
 from companion.sat.gp import GpPredictor
 from companion.sat.mixture import Mixture
+from companion.sat.params import sat_params
 from companion.sat.predict import LinearModel
 from companion.sat.tracks import TrackLog
-from companion.sim.run import sat_params
 from companion.vision.calibration import load_calibration
 from companion.vision.camera import CameraModel
 from companion.vision.projection import (

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from importlib.metadata import version
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -37,27 +37,29 @@ from numpy.typing import NDArray
 from companion import mission as ms
 from companion.camera.source import Frame, LatestFrameGrabber, open_source
 from companion.config import PoseConfig, ServiceConfig
+from companion.drive import Observation, observe
 from companion.errors import CompanionError
-from companion.geo import LocalNed
 from companion.notify import Notifier
 from companion.pipeline import Pipeline, StepRecord, camera_model
 from companion.plan.gate import GateLimits, Setpoint, gate
-from companion.plan.planners import (
-    LargestGaussian,
-    LawnMower,
-    NearestGaussian,
-    Planner,
-    lawnmower_path,
-    move_towards,
+from companion.plan.planners import LawnMower, Planner, make_planner
+from companion.plan.setpoints import (
+    Carrot,
+    gate_limits,
+    hold_setpoint,
+    search_setpoint,
+    tilt_cos,
+    vehicle_xy,
 )
 from companion.record.checkpoint import latest_checkpoint, save_checkpoint
 from companion.record.frames import FrameRecorder
 from companion.record.rotation import make_room
 from companion.record.tlog import TlogWriter
-from companion.report import TrackRecord, confirmed_tracks, write_csv, write_geojson
-from companion.sim.plots import plot_flight
+from companion.report import TrackRecord, confirmed_tracks
+from companion.run_folder import RunFolder
 from companion.vehicle.events import UNKNOWN_PREFIX
-from companion.vehicle.mavsdk_link import FlightMode, MavsdkLink, VehicleError
+from companion.vehicle.mavsdk_link import MavsdkLink, VehicleError
+from companion.vehicle.modes import mission_mode
 from companion.vehicle.plausibility import PositionGate
 from companion.vehicle.pose_buffer import GeoPoseSample
 from companion.vehicle.signing import SigningRelay, load_signing_key
@@ -73,7 +75,6 @@ TELEMETRY_STALE_S = 0.8  # no telemetry (20 attitudes a second) for this long: t
 # enough for a loaded computer to stall that long)
 TELEMETRY_STALE_WALL_S = 0.4
 BATTERY_LOW_PERCENT = 20.0
-REACHED_M = 1.5  # the vehicle is this close to a waypoint: the planner moves on
 STREAM_SETTLE_S = 0.5  # PX4 accepts OFFBOARD only after setpoints have streamed (> 2 Hz)
 ESTIMATOR_STOP_S = 2.0  # wall time the step under way may take to end when the mission stops
 MIN_FLYING_M = 1.0  # higher above home than this: the vehicle is flying
@@ -82,17 +83,6 @@ POSE_WAIT_S = 1.5  # a frame may wait this long for the telemetry of its capture
 POSE_POLL_S = 0.02
 CHECKPOINT_EVERY_S = 5.0  # estimator time between checkpoints
 RESUME_WITHIN_S = 600.0  # a restarted service carries on from a checkpoint younger than this
-
-_MODES = {
-    FlightMode.OFFBOARD: ms.FlightMode.OFFBOARD, FlightMode.HOLD: ms.FlightMode.HOLD,
-    FlightMode.POSCTL: ms.FlightMode.POSCTL, FlightMode.ALTCTL: ms.FlightMode.ALTCTL,
-    FlightMode.MANUAL: ms.FlightMode.MANUAL, FlightMode.STABILIZED: ms.FlightMode.MANUAL,
-    FlightMode.ACRO: ms.FlightMode.MANUAL, FlightMode.RATTITUDE: ms.FlightMode.MANUAL,
-    FlightMode.MISSION: ms.FlightMode.MISSION, FlightMode.TAKEOFF: ms.FlightMode.TAKEOFF,
-    FlightMode.LAND: ms.FlightMode.LAND, FlightMode.RETURN_TO_LAUNCH: ms.FlightMode.RTL,
-    FlightMode.UNKNOWN: ms.FlightMode.UNKNOWN,
-}
-
 
 @dataclass
 class RunResult:
@@ -104,31 +94,10 @@ class RunResult:
     counters: dict[str, int] = field(default_factory=dict)
 
 
-class _JsonLines:
-    """Appends one JSON object per line and flushes it (a crash loses at most the last line)."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self._fh: TextIO = path.open("a", encoding="utf-8")
-
-    def write(self, record: dict[str, Any]) -> None:
-        self._fh.write(json.dumps(record, separators=(",", ":")) + "\n")
-        self._fh.flush()
-
-    def close(self) -> None:
-        self._fh.close()
-
-
 async def _set_when(stop: asyncio.Event, wake: asyncio.Event) -> None:
     """Set `wake` once `stop` is set, so a waiting control loop ends at once."""
     await stop.wait()
     wake.set()
-
-
-def _tilt_cos(q_wxyz: tuple[float, float, float, float]) -> float:
-    """cos of the angle between the body's down axis and the vertical (roll and pitch)."""
-    _, x, y, _ = q_wxyz
-    return 1.0 - 2.0 * (x * x + y * y)
 
 
 def pose_sigma(floors: PoseConfig, reported: Accuracy) -> PoseUncertainty:
@@ -141,16 +110,6 @@ def pose_sigma(floors: PoseConfig, reported: Accuracy) -> PoseUncertainty:
                            at_least(floors.vertical_std_m, reported.vertical_std_m),
                            at_least(floors.attitude_std_deg, reported.attitude_std_deg),
                            at_least(floors.heading_std_deg, reported.heading_std_deg))
-
-
-def _run_dir(root: Path, now: datetime) -> Path:
-    base = root / now.strftime("run-%Y%m%dT%H%M%SZ")
-    path, n = base, 1
-    while path.exists():
-        n += 1
-        path = base.with_name(f"{base.name}-{n}")
-    path.mkdir(parents=True)
-    return path
 
 
 class Service:
@@ -175,11 +134,10 @@ class Service:
         self.mission = ms.Mission(self._mission_config())
         self._stream: ms.Stream | None = None
         self._previous: Setpoint | None = None
-        self._carrot_xy: FloatArray | None = None
+        self._carrot = Carrot()
         self._planner: Planner | None = None  # made when the search starts, from where we are
-        self._progress = 0
         self._limits: GateLimits | None = None
-        self._events: _JsonLines | None = None
+        self._folder: RunFolder | None = None
         self._announced: set[int] = set()
         self._streaming_since_s: float | None = None
         self._last_step_wall_s = -math.inf  # when the pipeline last finished a step
@@ -203,10 +161,7 @@ class Service:
     def _make_planner(self, start_xy: FloatArray) -> Planner:
         """The configured planner; a lawn mower's passes each end where the search started."""
         s, world = self.config.search, self.pipeline.frame.world
-        if s.planner == "lawnmower":
-            start = world.clip(start_xy)
-            return LawnMower(lawnmower_path(world, start, s.lane_spacing_m, s.sweeps))
-        return NearestGaussian() if s.planner == "nearest-gaussian" else LargestGaussian()
+        return make_planner(s.planner, world, world.clip(start_xy), s.lane_spacing_m, s.sweeps)
 
     # -- the run -----------------------------------------------------------------------------
 
@@ -214,15 +169,14 @@ class Service:
         """Fly the mission until it is over or `stop` is set; write the reports."""
         stop = stop or asyncio.Event()
         o = self.config.output
-        out = _run_dir(Path(o.dir), datetime.now(UTC))
-        self._events = _JsonLines(out / "events.jsonl")
+        folder = self._folder = RunFolder.create(Path(o.dir), datetime.now(UTC))
+        out = folder.path
         self._event("start", out_dir=str(out))
         for removed in make_room(Path(o.dir), max_total_bytes=int(o.max_runs_mb * 1e6),
                                  min_free_bytes=int(o.min_free_mb * 1e6), keep=[out],
                                  log=self._log):
             self._event("run_removed", path=str(removed.path), bytes=removed.bytes)
         self._resume(out)
-        steps = _JsonLines(out / "steps.jsonl")
         tlog = TlogWriter(out / "flight.tlog")
         if o.frames != "off":
             self._frames = FrameRecorder(
@@ -235,8 +189,8 @@ class Service:
         gc.collect()
         gc.freeze()
         try:
-            await self._fly(stop, steps, tlog)
-            tracks = self._write_reports(out)
+            await self._fly(stop, folder, tlog)
+            tracks = self._write_reports(folder)
             self._event("end", state=self.mission.state.value, confirmed=len(tracks),
                         **self.counters)
         except Exception as exc:
@@ -251,11 +205,10 @@ class Service:
             if self._frames is not None:
                 self.counters["frames_kept"] = self._frames.kept
                 self._frames.close()
-            steps.close()
-            self._events.close()
+            folder.close()
         return RunResult(out, tracks, self.mission.state.value, dict(self.counters))
 
-    async def _fly(self, stop: asyncio.Event, steps: _JsonLines, tlog: TlogWriter) -> None:
+    async def _fly(self, stop: asyncio.Event, folder: RunFolder, tlog: TlogWriter) -> None:
         c, v = self.config.camera, self.config.vehicle
         source = open_source(c.source, c.kind)
         grabber = LatestFrameGrabber(source, self.clock).start()
@@ -283,7 +236,7 @@ class Service:
                                  group.create_task(_set_when(stop, wake))]
                         done = asyncio.Event()
                         estimator = group.create_task(
-                            self._estimate(grabber, steps, done, warm_up))
+                            self._estimate(grabber, folder, done, warm_up))
                         await self._control(link, stop, wake)
                         done.set()  # the step under way ends and is logged, unless it hangs
                         await asyncio.wait([estimator], timeout=ESTIMATOR_STOP_S)
@@ -341,8 +294,8 @@ class Service:
         self._event("resumed", checkpoint=str(path), confirmed=confirmed)
 
     def _event(self, event: str, **fields: Any) -> None:
-        if self._events is not None:
-            self._events.write({"t_s": round(self.clock(), 6), "event": event, **fields})
+        if self._folder is not None:
+            self._folder.write_event({"t_s": round(self.clock(), 6), "event": event, **fields})
 
     def _mode_event(self, wake: asyncio.Event) -> None:
         """Each flight mode and arming state the autopilot reports, logged when it was seen;
@@ -374,7 +327,7 @@ class Service:
         self.pipeline.warm_up()
         return time.perf_counter() - started
 
-    async def _estimate(self, grabber: LatestFrameGrabber, steps: _JsonLines,
+    async def _estimate(self, grabber: LatestFrameGrabber, folder: RunFolder,
                         done: asyncio.Event, warm_up: asyncio.Future[float]) -> None:
         """One step per period on the newest frame (no backlog builds up), until done is set."""
         period_s = 1.0 / self.config.estimator.rate_hz
@@ -395,17 +348,18 @@ class Service:
             except CompanionError as exc:  # unusable input: a blind step, and fly on
                 boot_s = self.view.boot_time_now()
                 self._event("step_error", error=str(exc))
-                record = None if boot_s is None else self.pipeline.blind(boot_s, "bad input")
+                record = None if boot_s is None else observe(
+                    self.pipeline, Observation.nothing(boot_s, "bad input"))
             if record is None:
                 continue
             self._last_step_wall_s = time.monotonic()
             self.counters["steps"] += 1
             self.counters["blind_steps"] += record.blind is not None
-            steps.write(record.to_json(self.pipeline.frame))
+            folder.write_step(record.to_json(self.pipeline.frame))
             state = self.pipeline.state
             if state is not None and state.t_s >= self._checkpoint_due_s:  # off the event loop
                 self._checkpoint_due_s = state.t_s + CHECKPOINT_EVERY_S
-                await loop.run_in_executor(None, save_checkpoint, steps.path.parent,
+                await loop.run_in_executor(None, save_checkpoint, folder.path,
                                            self.pipeline.checkpoint())
 
     async def _estimator_step(self, frame: Frame | None,
@@ -414,7 +368,7 @@ class Service:
         if boot_now_s is None:
             return None  # no telemetry yet: no time base
         if frame is None:
-            return self.pipeline.blind(boot_now_s, "no frame")
+            return observe(self.pipeline, Observation.nothing(boot_now_s, "no frame"))
         capture_s = frame.capture_time_s
         if capture_s is None:  # a camera that knows no boot time: map its receive time
             capture_s = (frame.receive_time_s + (boot_now_s - self.clock())
@@ -422,17 +376,19 @@ class Service:
         sample = await self._pose_at(capture_s)
         if sample is None:
             glitch = self.view.gate.refusing_since_s is not None
-            return self.pipeline.blind(capture_s, "implausible position (GPS glitch?)" if glitch
-                                       else "no pose at the capture time")
+            return observe(self.pipeline, Observation.nothing(
+                capture_s, "implausible position (GPS glitch?)" if glitch
+                else "no pose at the capture time"))
         height_m, height_source = self.view.height_at(
-            capture_s, sample.alt_rel_m, _tilt_cos(sample.q_wxyz),
+            capture_s, sample.alt_rel_m, tilt_cos(sample.q_wxyz),
             self.config.pose.camera_rest_height_m)
         pose = GeoPose(capture_s, sample.lat_deg, sample.lon_deg, sample.alt_amsl_m, height_m,
                        sample.q_wxyz)
         sigma = pose_sigma(self.config.pose, self.view.accuracy())
         started = time.perf_counter()
-        record = await loop.run_in_executor(None, self.pipeline.step, frame.image, pose, sigma)
-        record.extra["height_source"] = height_source
+        obs = Observation(capture_s, pose, frame.image, sigma=sigma,
+                          extra={"height_source": height_source})
+        record = await loop.run_in_executor(None, observe, self.pipeline, obs)
         self.counters["frames_used"] += record.blind is None
         record.extra["latency_ms"] = round(1e3 * (self.clock() - frame.receive_time_s), 2)
         record.extra["process_ms"] = round(1e3 * (time.perf_counter() - started), 2)
@@ -467,14 +423,13 @@ class Service:
         confirmed = 0 if state is None else int(state.tracks.confirmed.sum())
         passes = 0
         if isinstance(self._planner, LawnMower):
-            passes = self._progress * self.config.search.sweeps // len(self._planner.path_xy)
+            passes = self._carrot.progress * self.config.search.sweeps // len(self._planner.path_xy)
         return ms.MissionInputs(
             connected=st is not None and fresh,
             health_ok=st is not None and st.position_ok,
             armed=st is not None and st.armed,
             in_air=st is not None and st.in_air,
-            flight_mode=_MODES.get(st.flight_mode, ms.FlightMode.OTHER) if st else
-            ms.FlightMode.UNKNOWN,
+            flight_mode=mission_mode(st),
             battery_low=st is not None and st.battery_percent < BATTERY_LOW_PERCENT,
             position_ok=fresh and view.local_origin() is not None,
             coverage_passes=passes, confirmed_targets=confirmed,
@@ -561,7 +516,7 @@ class Service:
         try:
             if kind is ms.CommandKind.STOP_SETPOINTS:
                 link.release()  # at once, and without asking for any mode
-                self._stream, self._previous, self._carrot_xy = None, None, None
+                self._stream, self._previous, self._carrot = None, None, Carrot()
                 self._streaming_since_s = None
             elif kind is ms.CommandKind.START_SETPOINTS:
                 self._stream = command.stream
@@ -604,32 +559,17 @@ class Service:
 
     # -- setpoints ---------------------------------------------------------------------------
 
-    def _gate_limits(self, origin: LocalNed, home_amsl_m: float) -> GateLimits:
-        s = self.config.safety
-        fence = s.geofence_latlon
-        north, east, _ = origin.geodetic_to_ned(fence[:, 0], fence[:, 1], origin.alt_m)
-        above_origin_m = home_amsl_m - origin.alt_m
-        return GateLimits(np.column_stack([north, east]), s.min_alt_m + above_origin_m,
-                          s.max_alt_m + above_origin_m, s.max_speed_h_m_s, s.max_speed_v_m_s)
-
-    def _target_xy(self, vehicle_xy: FloatArray, dt_s: float) -> FloatArray:
+    def _target_xy(self, vehicle_xy_m: FloatArray, dt_s: float) -> FloatArray:
         """The search-frame point the vehicle should be at now (a carrot along the plan)."""
         state = self.pipeline.state
-        carrot = vehicle_xy if self._carrot_xy is None else self._carrot_xy
         if state is None:
-            return carrot
+            return vehicle_xy_m if self._carrot.xy_m is None else self._carrot.xy_m
         if self._planner is None:
-            self._planner = self._make_planner(vehicle_xy)
-        waypoint, self._progress = self._planner.next_waypoint(
-            carrot, state.mixture, state.tracks, self.pipeline.frame.world, self._progress)
-        if waypoint is None:
-            return carrot
-        carrot = move_towards(carrot, waypoint, self.config.search.speed_m_s * dt_s)
-        if (isinstance(self._planner, LawnMower) and np.allclose(carrot, waypoint)
-                and np.hypot(*(vehicle_xy - waypoint)) <= REACHED_M):
-            self._progress += 1
-        self._carrot_xy = carrot
-        return carrot
+            self._planner = self._make_planner(vehicle_xy_m)
+        target, self._carrot = self._carrot.advance(
+            self._planner, vehicle_xy_m, state.mixture, state.tracks, self.pipeline.frame.world,
+            self.config.search.speed_m_s, dt_s)
+        return target
 
     async def _send_setpoint(self, link: MavsdkLink, dt_s: float) -> None:
         view, origin = self.view, self.view.local_origin()
@@ -637,19 +577,16 @@ class Service:
         if origin is None or sample is None or view.local_ned_m is None or view.home_amsl_m is None:
             return
         if self._limits is None:
-            self._limits = self._gate_limits(origin, view.home_amsl_m)
+            self._limits = gate_limits(self.config.safety, origin, view.home_amsl_m)
         vehicle_ned = np.array(view.local_ned_m)
         yaw_deg = self.config.search.heading_deg
         if self._stream is ms.Stream.HOLD_HERE:
-            wanted = Setpoint(vehicle_ned[0], vehicle_ned[1], vehicle_ned[2], yaw_deg)
+            wanted = hold_setpoint(vehicle_ned, yaw_deg)
         else:
             frame = self.pipeline.frame
-            e, n = frame.utm.geodetic_to_utm(sample.lat_deg, sample.lon_deg)
-            vehicle_xy = frame.from_utm(np.array([float(e), float(n)]))
-            lat, lon = frame.to_latlon(self._target_xy(vehicle_xy, dt_s))[0]
-            alt_amsl_m = view.home_amsl_m + self.config.search.altitude_m
-            north, east, down = origin.geodetic_to_ned(lat, lon, alt_amsl_m)
-            wanted = Setpoint(float(north), float(east), float(down), yaw_deg)
+            target_xy = self._target_xy(vehicle_xy(frame, sample.lat_deg, sample.lon_deg), dt_s)
+            wanted = search_setpoint(frame, origin, target_xy,
+                                     view.home_amsl_m + self.config.search.altitude_m, yaw_deg)
         result = gate(self._limits, wanted, self._previous, vehicle_ned, dt_s)
         if result.action != "pass":
             self.counters[f"setpoints_{result.action}"] += 1
@@ -667,25 +604,15 @@ class Service:
 
     # -- reports -----------------------------------------------------------------------------
 
-    def _write_reports(self, out: Path) -> list[TrackRecord]:
+    def _write_reports(self, folder: RunFolder) -> list[TrackRecord]:
         state, frame = self.pipeline.state, self.pipeline.frame
         records = [] if state is None else confirmed_tracks(
             state.tracks, frame.origin_utm_m, frame.utm.epsg, frame.to_latlon)
-        write_geojson(out / "tracks.geojson", records)
-        write_csv(out / "tracks.csv", records)
         summary = {"state": self.mission.state.value, "confirmed": len(records),
                    "counters": self.counters, "utm_epsg": frame.utm.epsg,
                    "tracks": [r.id for r in records]}
-        (out / "summary.json").write_text(json.dumps(summary, indent=1))
-        if self.config.output.plots:
-            self._plot(out, records)
+        # no matplotlib: the run's data is all there anyway
+        folder.write_reports(records, summary, plots=self.config.output.plots,
+                             area_en_m=frame.to_utm(frame.area_xy_m),
+                             on_plots_skipped=lambda why: self._event("plots_skipped", reason=why))
         return records
-
-    def _plot(self, out: Path, records: list[TrackRecord]) -> None:
-        steps = [json.loads(line) for line in (out / "steps.jsonl").read_text().splitlines()]
-        try:
-            frame = self.pipeline.frame
-            plot_flight(steps, np.array([[r.easting_m, r.northing_m] for r in records]), out,
-                        frame.to_utm(frame.area_xy_m))
-        except CompanionError as exc:  # no matplotlib: the run's data is all there anyway
-            self._event("plots_skipped", reason=str(exc))

@@ -37,9 +37,8 @@ from companion.sat.filter import SatParams, SatState, Scan, StepReport, initial_
 from companion.sat.fov import ConvexPolygon, Disk, Region
 from companion.sat.gp import GpPredictor
 from companion.sat.mixture import NO_LABEL, Mixture, make_mixture
+from companion.sat.params import FilterSpec, MotionModel, sat_params
 from companion.sat.update import detection
-from companion.sim.run import sat_params
-from companion.sim.scenario import FilterSpec
 from companion.vision.camera import CameraModel
 from companion.vision.projection import GeoPose, PoseUncertainty, project_detections, vehicle_utm
 
@@ -77,7 +76,7 @@ def filter_specs(draw: st.DrawFn) -> FilterSpec:
         prune_weight=draw(st.sampled_from([1e-3, 0.0]) | st.floats(0.0, 0.2)),
         merge_distance=draw(st.sampled_from([10.0, 0.0]) | st.floats(0.0, 100.0)),
         max_components=draw(st.integers(1, 40)),
-        motion=draw(st.sampled_from(["gp", "linear"])),
+        motion=draw(st.sampled_from(list(MotionModel))),
         process_noise=draw(st.sampled_from([0.01, 0.0]) | _log_uniform(1e-6, 100.0)),
         birth_weight=draw(st.sampled_from([1.0]) | _log_uniform(1e-3, 10.0)),
         birth=draw(st.sampled_from(["adaptive", "constant"])),
@@ -443,9 +442,9 @@ def _valid_spec() -> FilterSpec:
     return FilterSpec(
         p_survive=1.0, push_rule=True, push_band=(0.4, 0.6), push_mode="moment",
         extract_weight=0.5, confirm_length=3, prune_weight=1e-3, merge_distance=10.0,
-        max_components=100, motion="gp", process_noise=0.01, birth_weight=1.0, birth="adaptive",
-        linear_model="cp", velocity_variance=1.0, gp_sigma_f=2.0, gp_lengthscale=40.0,
-        gp_sigma_n=0.3, gp_window=30, track_timeout=30.0,
+        max_components=100, motion=MotionModel.GP, process_noise=0.01, birth_weight=1.0,
+        birth="adaptive", linear_model="cp", velocity_variance=1.0, gp_sigma_f=2.0,
+        gp_lengthscale=40.0, gp_sigma_n=0.3, gp_window=30, track_timeout=30.0,
     )
 
 

@@ -18,12 +18,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.errors import ConfigError
+from companion.plan.planners import PlannerKind
 from companion.sat.gp import GpParams
+from companion.sat.params import FilterSpec
 from companion.sim import scenario as sc
 from companion.sim.scenario import (
     BeliefComponent,
     BeliefSpec,
-    FilterSpec,
     GeoSpec,
     MetricsSpec,
     RobotSpec,
@@ -128,7 +129,7 @@ def test_example_parses_with_its_values() -> None:
     assert s.targets.appear == () and s.targets.disappear == ()
     assert (s.sensor.fov, s.sensor.fov_radius_m, s.sensor.p_detect) == ("disk", 25.0, 0.98)
     assert (s.sensor.noise_std_m, s.sensor.clutter_prob, s.sensor.clutter_rate) == (1.0, 0.1, 0.0)
-    assert s.robot == RobotSpec((0.0, 0.0), 0.5, "lawnmower", 25.0, 3)
+    assert s.robot == RobotSpec((0.0, 0.0), 0.5, PlannerKind.LAWNMOWER, 25.0, 3)
     assert s.belief == BeliefSpec("exact", 10, 15.0, 50.0, ())
     f = s.filter
     assert (f.p_survive, f.push_rule, f.push_band, f.extract_weight) == (1.0, True, (0.4, 0.6), 0.5)

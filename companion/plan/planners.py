@@ -7,17 +7,26 @@ the next waypoint (or None: stay) and its new progress counter; only the lawn mo
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
 from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.errors import ConfigError
+from companion.errors import InputError
 from companion.plan.world import World
 from companion.sat.mixture import Mixture
 from companion.sat.tracks import Tracks
 
 FloatArray = NDArray[np.float64]
+
+
+class PlannerKind(StrEnum):
+    """The configured planner, by its TOML name."""
+
+    LAWNMOWER = "lawnmower"
+    NEAREST_GAUSSIAN = "nearest-gaussian"
+    LARGEST_GAUSSIAN = "largest-gaussian"
 
 
 class Planner(Protocol):
@@ -43,7 +52,8 @@ def lawnmower_path(
     s/2 to each side covers the whole width; the last lane is moved inside the world if needed.
     """
     if lane_spacing_m <= 0:
-        raise ConfigError("robot.lane_spacing", "must be > 0")
+        raise InputError(f"lane spacing must be > 0, got {lane_spacing_m!r}",
+                         reason=f"must be > 0, got {lane_spacing_m!r}")
     lanes = np.arange(lane_spacing_m / 2.0, world.width_m, lane_spacing_m)
     if lanes.size == 0:
         lanes = np.array([world.width_m / 2.0])
@@ -128,3 +138,16 @@ def move_towards(
     if dist <= max_step_m:
         return np.array(waypoint_xy, dtype=np.float64)
     return robot_xy + delta * (max_step_m / dist)
+
+
+def make_planner(
+    kind: PlannerKind, world: World, start_xy: FloatArray, lane_spacing_m: float, sweeps: int
+) -> Planner:
+    """The planner of that kind; a lawn mower's `sweeps` passes each end at start_xy."""
+    if kind == PlannerKind.LAWNMOWER:
+        return LawnMower(lawnmower_path(world, start_xy, lane_spacing_m, sweeps))
+    if kind == PlannerKind.NEAREST_GAUSSIAN:
+        return NearestGaussian()
+    if kind == PlannerKind.LARGEST_GAUSSIAN:
+        return LargestGaussian()
+    raise InputError(f"unknown planner {kind!r}")

@@ -17,23 +17,19 @@ from numpy.typing import NDArray
 
 from companion.metrics import mahalanobis_to_tracks, ospa, summarize_mahalanobis
 from companion.plan.planners import (
-    LargestGaussian,
     LawnMower,
-    NearestGaussian,
     Planner,
     lawnmower_path,
+    make_planner,
     move_towards,
 )
 from companion.plan.world import World
-from companion.sat.birth import BirthWeight
 from companion.sat.filter import SatParams, SatState, Scan, initial_state, step
 from companion.sat.fov import ConvexPolygon, Disk, Region
-from companion.sat.gp import GpParams, GpPredictor
-from companion.sat.predict import LinearModel
-from companion.sat.tracks import TrackParams
-from companion.sat.update import PushMode, PushRule
+from companion.sat.gp import GpPredictor
+from companion.sat.params import FovKind, sat_params
 from companion.sim.belief import initial_belief
-from companion.sim.scenario import FilterSpec, Scenario
+from companion.sim.scenario import Scenario
 from companion.sim.sensor import SensorModel, sense
 from companion.sim.truth import Truth, advance_truth, initial_truth
 
@@ -47,36 +43,10 @@ def filter_params(s: Scenario) -> SatParams:
                       s.dt_s)
 
 
-def sat_params(f: FilterSpec, p_detect: float, clutter_per_scan: float, dt_s: float) -> SatParams:
-    """The filter's parameters from a [filter] table, p(D|F), clutter and the step length."""
-    return SatParams(
-        p_survive=f.p_survive,
-        p_detect=p_detect,
-        clutter_per_scan=clutter_per_scan,
-        push=PushRule(*f.push_band, PushMode(f.push_mode)) if f.push_rule else None,
-        extract_weight=f.extract_weight,
-        prune_weight=f.prune_weight,
-        merge_distance_sq=f.merge_distance,
-        max_components=f.max_components,
-        use_gp=f.motion == "gp",
-        linear_model=LinearModel(f.linear_model),
-        q_m2_per_s=f.process_noise / dt_s,
-        birth=BirthWeight(f.birth),
-        birth_weight=f.birth_weight,
-        velocity_var_m2_s2=f.velocity_variance,
-        gp=GpParams(f.gp_sigma_f, f.gp_lengthscale, f.gp_sigma_n, f.gp_window),
-        tracks=TrackParams(f.merge_distance, f.confirm_length, f.track_timeout, f.gp_window),
-    )
-
-
-def make_planner(s: Scenario, world: World) -> Planner:
+def scenario_planner(s: Scenario, world: World) -> Planner:
     """The scenario's planner."""
     r = s.robot
-    if r.planner == "lawnmower":
-        return LawnMower(lawnmower_path(world, np.array(r.start_xy), r.lane_spacing_m, r.sweeps))
-    if r.planner == "nearest-gaussian":
-        return NearestGaussian()
-    return LargestGaussian()
+    return make_planner(r.planner, world, np.array(r.start_xy), r.lane_spacing_m, r.sweeps)
 
 
 def planned_steps(s: Scenario, world: World) -> int:
@@ -94,7 +64,7 @@ def planned_steps(s: Scenario, world: World) -> int:
 
 def sensing_region(s: Scenario, robot_xy: FloatArray) -> Region:
     """The FOV on the ground for a robot at robot_xy."""
-    if s.sensor.fov != "disk":
+    if s.sensor.fov != FovKind.DISK:
         return ConvexPolygon(s.sensor.fov_polygon_xy + robot_xy)
     return Disk(robot_xy.copy(), s.sensor.fov_radius_m)
 
@@ -213,7 +183,7 @@ def simulate(s: Scenario, progress: Progress | None = None) -> SimResult:
     )
     state = initial_state(belief, 0.0, params)
     gp = GpPredictor(params.gp)
-    planner = make_planner(s, world)
+    planner = scenario_planner(s, world)
     r_cov = s.sensor.noise_std_m**2 * np.eye(2)
 
     n_steps = planned_steps(s, world)

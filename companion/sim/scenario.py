@@ -54,14 +54,13 @@ from companion.keys import (
     toml_text,
     unknown_key,
 )
-from companion.sat.gp import GpParams
+from companion.plan.planners import PlannerKind
+from companion.sat.params import FILTER_KEYS, FilterSpec, FovKind
 from companion.vision.camera import BodyPose, CameraModel, ground_footprint
 
 __all__ = [
-    "FILTER_KEYS",
     "BeliefComponent",
     "BeliefSpec",
-    "FilterSpec",
     "GeoSpec",
     "MetricsSpec",
     "RobotSpec",
@@ -131,7 +130,7 @@ class TargetsSpec(_ArrayEq):
 class SensorSpec(_ArrayEq):
     """Field of view, detection probability, noise and clutter of the simulated sensor."""
 
-    fov: Literal["disk", "polygon", "camera"]
+    fov: FovKind
     fov_radius_m: float
     fov_polygon_xy: FloatArray  # (k, 2) offsets from the robot, metres, counter-clockwise
     # (for fov = "camera": the level camera's footprint at the search altitude)
@@ -147,7 +146,7 @@ class RobotSpec:
 
     start_xy: tuple[float, float]
     speed_m_s: float
-    planner: Literal["lawnmower", "nearest-gaussian", "largest-gaussian"]
+    planner: PlannerKind
     lane_spacing_m: float
     sweeps: int
 
@@ -170,32 +169,6 @@ class BeliefSpec:
     offset_m: float
     variance_m2: float
     components: tuple[BeliefComponent, ...]
-
-
-@dataclass(frozen=True, slots=True)
-class FilterSpec:
-    """Parameters of the GM-PHD search-and-track filter."""
-
-    p_survive: float
-    push_rule: bool
-    push_band: tuple[float, float]
-    push_mode: Literal["moment", "paper"]
-    extract_weight: float
-    confirm_length: int
-    prune_weight: float
-    merge_distance: float  # squared Mahalanobis distance (Vo & Ma's U); also the track gate
-    max_components: int
-    motion: Literal["gp", "linear"]
-    process_noise: float  # m^2 per step per axis
-    birth_weight: float
-    birth: Literal["adaptive", "constant"]
-    linear_model: Literal["cp", "cv"]
-    velocity_variance: float  # m^2/s^2
-    gp_sigma_f: float  # m
-    gp_lengthscale: float  # s
-    gp_sigma_n: float  # m
-    gp_window: int  # points
-    track_timeout: float  # s
 
 
 @dataclass(frozen=True, slots=True)
@@ -300,241 +273,199 @@ class _Components(Kind[tuple[Any, ...]]):
 # ---------------------------------------------------------------------------------------------
 
 
-_GP = GpParams()
 _DEFAULT_TARGET_COUNT = 10
 
 _TOP: tuple[Key, ...] = (
-    Key("name", "name", Text(), Derived("the file's name without `.toml`"), "scenario name"),
-    Key("seed", "seed", Int(ge=0), 0,
+    Key("name", Text(), Derived("the file's name without `.toml`"), "scenario name"),
+    Key("seed", Int(ge=0), 0,
          "the run is a pure function of (file, seed); --seed overrides"),
-    Key("dt", "dt_s", Float(gt=0), 1.0, "seconds per step"),
-    Key("steps", "steps", Int(ge=0), 0, "steps to run; 0 = until the planner's path ends"),
+    Key("dt", Float(gt=0), 1.0, "seconds per step", field="dt_s"),
+    Key("steps", Int(ge=0), 0, "steps to run; 0 = until the planner's path ends"),
 )
 
 _SECTIONS: dict[str, tuple[Key, ...]] = {
     "world": (
-        Key("size", "size_m", Pair(Float(gt=0)), [150.0, 150.0], "metres, x by y"),
+        Key("size", Pair(Float(gt=0)), [150.0, 150.0], "metres, x by y", field="size_m"),
     ),
     "targets": (
-        Key("count", "count", Int(ge=0),
+        Key("count", Int(ge=0),
              Derived(f"{_DEFAULT_TARGET_COUNT}, or the number of `positions`"),
              "targets placed uniformly at random in the world (from the seed)"),
-        Key("positions", "positions_xy", Points(), [],
-             "explicit initial [[x, y], ...] instead of random"),
-        Key("speed", "speed_m_s", Float(ge=0), 0.0, "m/s; 0 = stationary"),
-        Key("turn_every", "turn_every_steps", Int(ge=1), 400,
-             "steps between random heading changes of moving targets"),
-        Key("appear", "appear", Rows("[step, x, y]", Int(ge=0), Float(), Float()), [],
+        Key("positions", Points(), [],
+             "explicit initial [[x, y], ...] instead of random", field="positions_xy"),
+        Key("speed", Float(ge=0), 0.0, "m/s; 0 = stationary", field="speed_m_s"),
+        Key("turn_every", Int(ge=1), 400,
+             "steps between random heading changes of moving targets", field="turn_every_steps"),
+        Key("appear", Rows("[step, x, y]", Int(ge=0), Float(), Float()), [],
              "targets that enter the world later"),
-        Key("disappear", "disappear", Rows("[step, index]", Int(ge=0), Int(ge=0)), [],
+        Key("disappear", Rows("[step, index]", Int(ge=0), Int(ge=0)), [],
              "targets that leave; index counts initial targets, then appearing ones in order"),
-        Key("tag_size_m", "tag_size_m", Float(gt=0, le=10), 0.5,
+        Key("tag_size_m", Float(gt=0, le=10), 0.5,
              "SITL: edge of the black square of each target's tag36h11 AprilTag (target i wears "
              "tag id i), metres", project=True),
     ),
     "sensor": (
-        Key("fov", "fov", Choice("disk", "polygon", "camera"), "disk",
+        Key("fov", Choice(FovKind.DISK, FovKind.POLYGON, FovKind.CAMERA), "disk",
              "disk (the paper's), polygon, or camera (SITL only)"),
-        Key("fov_radius", "fov_radius_m", Float(gt=0), 25.0, "metres, for fov = \"disk\""),
-        Key("fov_polygon", "fov_polygon_xy", Points(), [],
+        Key("fov_radius", Float(gt=0), 25.0, "metres, for fov = \"disk\"", field="fov_radius_m"),
+        Key("fov_polygon", Points(), [],
              "for fov = \"polygon\": convex [[dx, dy], ...] offsets from the robot, metres",
-             project=True),
-        Key("p_detect", "p_detect", Float(ge=0, le=1), 0.98, "p(D | in FOV)"),
-        Key("noise_std", "noise_std_m", Float(gt=0), 1.0,
-             "measurement noise std per axis, metres (R = noise_std^2 I)"),
-        Key("clutter_prob", "clutter_prob", Float(ge=0, le=1), 0.1,
+             project=True, field="fov_polygon_xy"),
+        Key("p_detect", Float(ge=0, le=1), 0.98, "p(D | in FOV)"),
+        Key("noise_std", Float(gt=0), 1.0,
+             "measurement noise std per axis, metres (R = noise_std^2 I)", field="noise_std_m"),
+        Key("clutter_prob", Float(ge=0, le=1), 0.1,
              "probability of one false positive per step, uniform in the FOV"),
-        Key("clutter_rate", "clutter_rate", Float(ge=0), 0.0,
+        Key("clutter_rate", Float(ge=0), 0.0,
              "Poisson mean of further false positives per step"),
     ),
     "robot": (
-        Key("start", "start_xy", Pair(Float()), [0.0, 0.0], "metres, inside the world"),
-        Key("speed", "speed_m_s", Float(gt=0), 0.5, "m/s"),
-        Key("planner", "planner", Choice("lawnmower", "nearest-gaussian", "largest-gaussian"),
+        Key("start", Pair(Float()), [0.0, 0.0], "metres, inside the world", field="start_xy"),
+        Key("speed", Float(gt=0), 0.5, "m/s", field="speed_m_s"),
+        Key("planner", Choice(*PlannerKind),
              "lawnmower", "path planner"),
-        Key("lane_spacing", "lane_spacing_m", Float(gt=0), 25.0,
-             "metres between lawn-mower lanes"),
-        Key("sweeps", "sweeps", Int(ge=1), 3,
+        Key("lane_spacing", Float(gt=0), 25.0,
+             "metres between lawn-mower lanes", field="lane_spacing_m"),
+        Key("sweeps", Int(ge=1), 3,
              "lawn-mower passes over the whole world, each returning to start"),
     ),
     "belief": (
-        Key("kind", "kind", Choice("exact", "under", "over", "empty", "explicit"), "exact",
+        Key("kind", Choice("exact", "under", "over", "empty", "explicit"), "exact",
              "how the initial GM-PHD is built"),
-        Key("count", "count", Int(ge=0), Derived("`targets.count`"),
+        Key("count", Int(ge=0), Derived("`targets.count`"),
              "components near true targets, for exact (= targets.count), under (<), over (>)"),
-        Key("offset", "offset_m", Float(ge=0), 15.0,
-             "mean distance of each component from a true target, metres"),
-        Key("variance", "variance_m2", Float(gt=0), 50.0,
-             "diagonal covariance entry of each component, m^2"),
-        Key("components", "components", _Components(), [],
+        Key("offset", Float(ge=0), 15.0,
+             "mean distance of each component from a true target, metres", field="offset_m"),
+        Key("variance", Float(gt=0), 50.0,
+             "diagonal covariance entry of each component, m^2", field="variance_m2"),
+        Key("components", _Components(), [],
              "for kind = \"explicit\": the initial components (keys below)"),
     ),
-    "filter": (
-        Key("p_survive", "p_survive", Float(ge=0, le=1), 1.0, "survival probability p_S"),
-        Key("push_rule", "push_rule", Bool(), True, "the paper's limited-FOV update rule"),
-        Key("push_band", "push_band", Pair(Float(ge=0, le=1), ordered=True), [0.4, 0.6],
-             "p_D band [lo, hi] in which the push rule acts"),
-        Key("push_mode", "push_mode", Choice("moment", "paper"), "moment",
-             "how the push rule moves a missed component: \"paper\" = Eq. push inside the band; "
-             "\"moment\" = the mean and covariance of its exact no-detection posterior (any p_D)",
-             project=True),
-        Key("extract_weight", "extract_weight", Float(gt=0), 0.5, "state extraction weight"),
-        Key("confirm_length", "confirm_length", Int(ge=1), 3,
-             "steps supported by a detection before a track is confirmed (l_threshold)"),
-        Key("prune_weight", "prune_weight", Float(ge=0), 0.001, "pruning weight"),
-        Key("merge_distance", "merge_distance", Float(ge=0), 10.0,
-             "threshold on the SQUARED Mahalanobis distance (Vo & Ma's U); also the track gate"),
-        Key("max_components", "max_components", Int(ge=1), 100, "components kept after merging"),
-        Key("motion", "motion", Choice("gp", "linear"), "gp", "motion model of confirmed tracks"),
-        Key("process_noise", "process_noise", Float(ge=0), 0.01,
-             "variance per step per axis of the linear model, m^2 (for \"cv\": acceleration "
-             "spectral density times the step)"),
-        Key("birth_weight", "birth_weight", Float(gt=0), 1.0,
-             "weight of a measurement-driven new component (the paper uses 1)"),
-        Key("birth", "birth", Choice("adaptive", "constant"), "adaptive",
-             "adaptive: the share of a measurement that clutter and the existing components do "
-             "not explain (Ristic et al. 2012); constant: birth_weight (the paper)",
-             project=True),
-        Key("linear_model", "linear_model", Choice("cp", "cv"), "cp",
-             "linear motion: constant position (random walk) or constant velocity", project=True),
-        Key("velocity_variance", "velocity_variance", Float(gt=0), 1.0,
-             "velocity prior of a new component for linear_model = \"cv\", m^2/s^2", project=True),
-        Key("gp_sigma_f", "gp_sigma_f", Float(gt=0), _GP.sigma_f_m,
-             "GP signal std, metres", project=True),
-        Key("gp_lengthscale", "gp_lengthscale", Float(gt=0), _GP.lengthscale_s,
-             "GP kernel length scale, seconds", project=True),
-        Key("gp_sigma_n", "gp_sigma_n", Float(gt=0), _GP.sigma_n_m,
-             "GP observation noise std, metres", project=True),
-        Key("gp_window", "gp_window", Int(ge=2), _GP.window,
-             "a track's most recent detected positions the GP regresses on", project=True),
-        Key("track_timeout", "track_timeout", Float(gt=0), 30.0,
-             "seconds without support before a confirmed track ends", project=True),
-    ),
+    "filter": FILTER_KEYS,
     "metrics": (
-        Key("ospa_c", "ospa_c", Float(gt=0), 100.0, "OSPA cut-off, metres"),
-        Key("ospa_p", "ospa_p", Float(ge=1), 2.0, "OSPA order"),
+        Key("ospa_c", Float(gt=0), 100.0, "OSPA cut-off, metres"),
+        Key("ospa_p", Float(ge=1), 2.0, "OSPA order"),
     ),
     "geo": (
-        Key("origin", "origin",
+        Key("origin",
              Floats("[lat, lon, alt]", Float(ge=-90, le=90), Float(ge=-180, le=180),
                      Float(ge=-500, le=9000)),
              [47.397742, 8.545594, 488.0],
              "WGS84 degrees and metres of the ground at the world's (0, 0) corner (default: PX4 "
              "SITL's home); the world's x runs east and y north from it"),
-        Key("utm_epsg", "utm_epsg", Int(), Derived("the zone of the world's centre"),
+        Key("utm_epsg", Int(), Derived("the zone of the world's centre"),
              "EPSG code of the WGS84 / UTM zone the service's tracks and outputs use for the "
              "whole flight (326xx north, 327xx south)"),
     ),
     "camera": (
-        Key("width_px", "width_px", Int(ge=16), 640, "image width, pixels"),
-        Key("height_px", "height_px", Int(ge=16), 480, "image height, pixels"),
-        Key("hfov_deg", "hfov_deg", Float(ge=1, le=170), Derived("90 unless fx_px is given"),
+        Key("width_px", Int(ge=16), 640, "image width, pixels"),
+        Key("height_px", Int(ge=16), 480, "image height, pixels"),
+        Key("hfov_deg", Float(ge=1, le=170), Derived("90 unless fx_px is given"),
              "horizontal field of view (square pixels): sets fx_px = fy_px", stored=False),
-        Key("fx_px", "fx_px", Float(gt=0), Derived("from `camera.hfov_deg`"),
+        Key("fx_px", Float(gt=0), Derived("from `camera.hfov_deg`"),
              "focal length in x, pixels"),
-        Key("fy_px", "fy_px", Float(gt=0), Derived("`camera.fx_px`"),
+        Key("fy_px", Float(gt=0), Derived("`camera.fx_px`"),
              "focal length in y, pixels"),
-        Key("cx_px", "cx_px", Float(), Derived("the image centre, (width_px - 1) / 2"),
+        Key("cx_px", Float(), Derived("the image centre, (width_px - 1) / 2"),
              "principal point x, pixels (OpenCV: pixel centres at integers)"),
-        Key("cy_px", "cy_px", Float(), Derived("the image centre, (height_px - 1) / 2"),
+        Key("cy_px", Float(), Derived("the image centre, (height_px - 1) / 2"),
              "principal point y, pixels"),
-        Key("dist", "dist", Floats("[k1, k2, p1, p2, k3]", *(Float(),) * 5),
+        Key("dist", Floats("[k1, k2, p1, p2, k3]", *(Float(),) * 5),
              [0.0, 0.0, 0.0, 0.0, 0.0], "OpenCV distortion coefficients"),
-        Key("mount_rpy_deg", "mount_rpy_deg", Floats("[roll, pitch, yaw]", *(Float(),) * 3),
+        Key("mount_rpy_deg", Floats("[roll, pitch, yaw]", *(Float(),) * 3),
              [0.0, 0.0, 0.0],
              "mounting relative to straight down (top of the image forward), degrees; positive "
              "pitch looks ahead of nadir"),
-        Key("mount_offset_m", "mount_offset_m",
+        Key("mount_offset_m",
              Floats("[forward, right, down]", *(Float(ge=-10, le=10),) * 3), [0.0, 0.0, 0.0],
              "camera centre in the body frame, metres"),
-        Key("rate_hz", "rate_hz", Float(gt=0, le=1000), 10.0, "frames per second"),
-        Key("noise_std", "noise_std", Float(ge=0, le=64), 2.0,
+        Key("rate_hz", Float(gt=0, le=1000), 10.0, "frames per second"),
+        Key("noise_std", Float(ge=0, le=64), 2.0,
              "SITL: exposure noise of the rendered frames, grey levels"),
     ),
     "vehicle": (
-        Key("flavour", "flavour", Choice("px4", "ardupilot"), "px4",
+        Key("flavour", Choice("px4", "ardupilot"), "px4",
              "SITL autopilot: PX4 or ArduPilot Copter"),
-        Key("altitude_m", "altitude_m", Float(gt=0, le=500), 8.0,
+        Key("altitude_m", Float(gt=0, le=500), 8.0,
              "search altitude above home, metres (the paper's field experiment: 8)"),
-        Key("heading_deg", "heading_deg", Float(ge=-360, le=360), 0.0,
+        Key("heading_deg", Float(ge=-360, le=360), 0.0,
              "heading at boot and while searching, degrees clockwise from north"),
-        Key("max_speed_m_s", "max_speed_m_s", Float(gt=0), 8.0,
+        Key("max_speed_m_s", Float(gt=0), 8.0,
              "SITL: horizontal speed limit of the autopilot, m/s"),
-        Key("max_accel_m_s2", "max_accel_m_s2", Float(gt=0), 4.0,
+        Key("max_accel_m_s2", Float(gt=0), 4.0,
              "SITL: acceleration limit, m/s^2 (it tilts the vehicle and its camera)"),
-        Key("max_yaw_rate_deg_s", "max_yaw_rate_deg_s", Float(gt=0), 60.0,
+        Key("max_yaw_rate_deg_s", Float(gt=0), 60.0,
              "SITL: yaw-rate limit, degrees/s"),
-        Key("takeoff_altitude_m", "takeoff_altitude_m", Float(gt=0), 2.5,
+        Key("takeoff_altitude_m", Float(gt=0), 2.5,
              "SITL: the autopilot's default take-off altitude (PX4 MIS_TAKEOFF_ALT), metres"),
-        Key("rtl_altitude_m", "rtl_altitude_m", Float(gt=0), 30.0,
+        Key("rtl_altitude_m", Float(gt=0), 30.0,
              "SITL: return altitude (PX4 RTL_RETURN_ALT), metres"),
-        Key("offboard_loss_timeout_s", "offboard_loss_timeout_s", Float(gt=0), 1.0,
+        Key("offboard_loss_timeout_s", Float(gt=0), 1.0,
              "SITL: setpoint silence before the offboard failsafe (PX4 COM_OF_LOSS_T), seconds"),
-        Key("offboard_failsafe", "offboard_failsafe", Choice("hold", "land", "rtl"), "hold",
+        Key("offboard_failsafe", Choice("hold", "land", "rtl"), "hold",
              "SITL: what PX4 does when offboard setpoints stop (COM_OBL_RC_ACT)"),
-        Key("armable_after_s", "armable_after_s", Float(ge=0),
+        Key("armable_after_s", Float(ge=0),
              Derived("40 for ardupilot, 2 for px4 (real PX4 SIH: 33-37)"),
              "SITL: estimator warm-up after boot before arming is allowed, seconds"),
-        Key("gps_fix_after_s", "gps_fix_after_s", Float(ge=0),
+        Key("gps_fix_after_s", Float(ge=0),
              Derived("25 for ardupilot, 0 for px4, never after `vehicle.armable_after_s`"),
              "SITL: GPS fix after boot, seconds; before it the position reads lat = lon = 0, "
              "GPS_RAW_INT has no fix, SYS_STATUS no GPS health and there is no local position"),
-        Key("arm_unstable_s", "arm_unstable_s", Float(ge=0),
+        Key("arm_unstable_s", Float(ge=0),
              Derived("3 for px4 with its own warm-up, 0 when `vehicle.armable_after_s` is "
                      "given; 0 for ardupilot"),
              "SITL: seconds after the warm-up during which ARM is TEMPORARILY_REJECTED "
              "(\"horizontal/vertical velocity unstable\", PX4: as an EVENT); 0 = never"),
-        Key("takeoff_spoolup_s", "takeoff_spoolup_s", Float(ge=0),
+        Key("takeoff_spoolup_s", Float(ge=0),
              Derived("1.75 for ardupilot, 0 for px4"),
              "SITL: motor spool-up from NAV_TAKEOFF until the vehicle leaves the ground, seconds"),
-        Key("rel_alt_bias_m", "rel_alt_bias_m", Float(ge=-10, le=10),
+        Key("rel_alt_bias_m", Float(ge=-10, le=10),
              Derived("0.25 for ardupilot, 0 for px4"),
              "SITL: reported height minus true height, metres (GLOBAL_POSITION_INT alt and "
              "relative_alt, LOCAL_POSITION_NED z); the vehicle flies that much lower"),
-        Key("position_noise_m", "position_noise_m", Float(ge=0), 0.0,
+        Key("position_noise_m", Float(ge=0), 0.0,
              "SITL: white noise on the reported position, metres per axis"),
-        Key("gps_drift_m_per_sqrt_s", "gps_drift_m_per_sqrt_s", Float(ge=0), 0.0,
+        Key("gps_drift_m_per_sqrt_s", Float(ge=0), 0.0,
              "SITL: random walk of the reported position, m/sqrt(s)"),
-        Key("heading_error_deg", "heading_error_deg", Float(ge=0, le=90),
+        Key("heading_error_deg", Float(ge=0, le=90),
              Derived("0.4 for ardupilot, 1.5 for px4"),
              "SITL: 1-sigma of the slowly varying heading estimate error, degrees (measured: "
              "PX4 SIH 1-12 off, ArduPilot within 0.6)"),
-        Key("attitude_error_deg", "attitude_error_deg", Float(ge=0, le=30),
+        Key("attitude_error_deg", Float(ge=0, le=30),
              Derived("0.3 for ardupilot, 1 for px4"),
              "SITL: 1-sigma of the roll and pitch estimate errors, degrees (measured: PX4 1-2)"),
-        Key("position_error_m", "position_error_m", Float(ge=0, le=100),
+        Key("position_error_m", Float(ge=0, le=100),
              Derived("0.02 for ardupilot, 0.15 for px4"),
              "SITL: 1-sigma of the north and east estimate errors, metres (measured: PX4 "
              "median 0.13-0.25, ArduPilot about 0.02)"),
-        Key("height_error_m", "height_error_m", Float(ge=0, le=100),
+        Key("height_error_m", Float(ge=0, le=100),
              Derived("0.05 for ardupilot, 0.5 for px4"),
              "SITL: 1-sigma of the height estimate error, metres (measured: PX4 up to 1.8)"),
-        Key("error_time_constant_s", "error_time_constant_s", Float(gt=0), 30.0,
+        Key("error_time_constant_s", Float(gt=0), 30.0,
              "SITL: correlation time of the estimate errors (Gauss-Markov), seconds"),
-        Key("battery_flight_s", "battery_flight_s", Float(gt=0), 1800.0,
+        Key("battery_flight_s", Float(gt=0), 1800.0,
              "SITL: flight time on a full battery, seconds"),
-        Key("battery_low_percent", "battery_low_percent", Float(ge=0, le=100), 20.0,
+        Key("battery_low_percent", Float(ge=0, le=100), 20.0,
              "SITL: battery level at which the autopilot returns home"),
-        Key("ekf_origin_offset_m", "ekf_origin_offset_m", Pair(Float()), [4.0, -3.0],
+        Key("ekf_origin_offset_m", Pair(Float()), [4.0, -3.0],
              "SITL, ArduPilot: EKF origin minus home, [north, east] metres (its local NED is "
              "about the EKF origin)"),
-        Key("rangefinder", "rangefinder", Bool(), Derived("true for px4 (SIH has one), false for "
+        Key("rangefinder", Bool(), Derived("true for px4 (SIH has one), false for "
                                                           "ardupilot"),
              "SITL: a downward rangefinder (DISTANCE_SENSOR: PX4 at 10 Hz, ArduPilot in EXTRA3 "
              "or on request)"),
-        Key("rangefinder_max_m", "rangefinder_max_m", Float(gt=0, le=1000), 40.0,
+        Key("rangefinder_max_m", Float(gt=0, le=1000), 40.0,
              "SITL: the rangefinder's range, metres"),
     ),
 }
 
 _COMPONENT_KEYS: tuple[Key, ...] = (
-    Key("weight", "weight", Float(gt=0), 1.0, "weight of the component"),
-    Key("mean", "mean_xy", Pair(Float()), REQUIRED, "mean [x, y], metres"),
-    Key("cov", "cov", Matrix2(), Derived("`belief.variance` times the identity"),
+    Key("weight", Float(gt=0), 1.0, "weight of the component"),
+    Key("mean", Pair(Float()), REQUIRED, "mean [x, y], metres", field="mean_xy"),
+    Key("cov", Matrix2(), Derived("`belief.variance` times the identity"),
          "covariance, m^2"),
 )
 
-FILTER_KEYS = _SECTIONS["filter"]  # the service configuration's [filter] table is the same
 
 _CROSS_KEY_RULES = (
     "`targets.positions` given: `targets.count` must equal its length or be omitted.",
