@@ -12,6 +12,7 @@ import numpy.typing as npt
 from scipy.optimize import linear_sum_assignment
 
 from companion.errors import InputError
+from companion.sat.linalg import spd_2x2_faults
 
 __all__ = [
     "mahalanobis_to_tracks",
@@ -21,11 +22,6 @@ __all__ = [
 ]
 
 FloatArray = npt.NDArray[np.float64]
-
-# Largest |P01 - P10| accepted, relative to the larger diagonal entry: covariances coming out
-# of a Kalman update are symmetric only up to rounding (~1e-16 relative), so this leaves a wide
-# margin while still catching a transposed or corrupted matrix.
-_COV_ASYMMETRY_RTOL = 1e-8
 
 
 def _positions_xy(points_xy: object, name: str) -> FloatArray:
@@ -126,30 +122,24 @@ def mahalanobis_to_tracks(
     if not np.all(np.isfinite(covs)):
         raise InputError("track_covs_xy: contains NaN or infinite entries")
 
-    a = covs[:, 0, 0]
-    d = covs[:, 1, 1]
-    asym = np.abs(covs[:, 0, 1] - covs[:, 1, 0])
-    bad_sym = asym > _COV_ASYMMETRY_RTOL * np.maximum(np.abs(a), np.abs(d))
+    bad_sym, bad_pd = spd_2x2_faults(covs)
     if np.any(bad_sym):
         raise InputError(
             f"track_covs_xy: covariance(s) not symmetric at track index "
             f"{np.flatnonzero(bad_sym).tolist()}"
         )
-    b = 0.5 * (covs[:, 0, 1] + covs[:, 1, 0])
-
-    # Closed-form Cholesky P = L L^T, L = [[l11, 0], [l21, l22]]; P is positive definite iff
-    # a > 0 and the Schur complement d - b^2 / a > 0 (Sylvester's criterion).
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        schur = d - b * b / a
-    bad_pd = ~((a > 0.0) & (schur > 0.0))
     if np.any(bad_pd):
         raise InputError(
             f"track_covs_xy: covariance(s) not positive definite at track index "
             f"{np.flatnonzero(bad_pd).tolist()}"
         )
+    # Closed-form Cholesky P = L L^T, L = [[l11, 0], [l21, l22]], with the Schur complement
+    # d - b^2 / a > 0 of a positive definite P.
+    a, d = covs[:, 0, 0], covs[:, 1, 1]
+    b = 0.5 * (covs[:, 0, 1] + covs[:, 1, 0])
     l11 = np.sqrt(a)
     l21 = b / l11
-    l22 = np.sqrt(schur)
+    l22 = np.sqrt(d - b * b / a)
 
     m = len(tru)
     closest = np.full(m, np.inf)

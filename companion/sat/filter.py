@@ -18,6 +18,7 @@ from companion.sat.birth import BirthWeight, birth, birth_weights
 from companion.sat.extract import extract
 from companion.sat.fov import ConvexPolygon, Disk, Region
 from companion.sat.gp import GpParams, GpPredictor
+from companion.sat.linalg import spd_2x2_faults
 from companion.sat.mixture import Mixture
 from companion.sat.predict import LinearModel, apply_gp, predict_linear, transition
 from companion.sat.reduce import merge, prune
@@ -82,9 +83,6 @@ class StepReport:
     dropped_measurements: int
     blind: bool
 
-
-_R_CORR_TOL = 1e-12
-"""Smallest 1 - rho^2 of the measurement covariance accepted (fov._CORR_TOL for components)."""
 
 _MAX_GAP_S = 1e9
 """Longest step accepted (~31 years, the GP's bound on time offsets): a longer gap can overflow
@@ -152,11 +150,10 @@ def _checked_r(r: object) -> FloatArray:
     (a, b), (c, d) = r_cov.tolist()
     if not all(map(np.isfinite, (a, b, c, d))):
         raise InputError("scan measurement covariance: must be finite")
-    if abs(b - c) > 1e-9 * max(abs(a), abs(d)):
+    asymmetric, indefinite = spd_2x2_faults(r_cov)
+    if asymmetric:
         raise InputError("scan measurement covariance: must be symmetric")
-    # Positive definite with a correlation below 1 - 1e-12 (as fov accepts covariances): a
-    # closer-to-singular R leaves determinants that round to <= 0 downstream.
-    if not (a > 0.0 and b * c < (1.0 - _R_CORR_TOL) * (a * d)):
+    if indefinite:  # as fov accepts the components' covariances
         raise InputError("scan measurement covariance: must be positive definite")
     if not math.isfinite(a * d - b * c):  # R beyond ~1e154 m^2: its inverse would overflow
         raise InputError("scan measurement covariance: too large (its determinant overflows)")
@@ -192,7 +189,7 @@ def step(
     on its cache. A bad scan raises InputError: a time before the state's or more than 1e9 s
     after it, a region that is neither a Disk nor a ConvexPolygon nor None, a sensor_xy not of
     shape (2,), measurements not of shape (m, 2), or an R that is not a symmetric positive
-    definite 2x2 (1 - rho^2 >= 1e-12, determinant finite). Non-finite measurement rows are
+    definite 2x2 (linalg.spd_2x2_faults, determinant finite). Non-finite measurement rows are
     dropped and counted, not refused; a non-finite sensor_xy makes the step blind.
     """
     # Every input is checked here, so that a bad scan raises InputError and nothing else.

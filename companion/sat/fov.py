@@ -43,6 +43,7 @@ from numpy.typing import NDArray
 from scipy.special import ndtr, owens_t
 
 from companion.errors import InputError
+from companion.sat.linalg import spd_2x2_faults
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -80,12 +81,6 @@ _MASS_FLOOR = 1e-300
 
 _CONVEX_TOL = 1e-12
 """Sine of a vertex's turning angle still counted as straight (collinear vertices are allowed)."""
-
-_ASYM_TOL = 1e-9
-"""Largest relative asymmetry |P01 - P10| / (|P00| + |P11|) taken for round-off."""
-
-_CORR_TOL = 1e-12
-"""Smallest 1 - rho^2 accepted; closer to a singular covariance is not positive definite."""
 
 _MAX_VERTEX_M = 1e150
 """Largest polygon coordinate accepted: products of coordinates stay far below overflow."""
@@ -313,14 +308,14 @@ def _gaussians(means_xy: FloatArray, covs_xy: FloatArray) -> tuple[FloatArray, C
         raise InputError("means_xy contains NaN or infinite values")
     if not np.isfinite(covs).all():
         raise InputError("covs_xy contains NaN or infinite values")
+    asymmetric, indefinite = spd_2x2_faults(covs)
+    if asymmetric.any():
+        raise InputError("covs_xy is not symmetric")
+    if indefinite.any():
+        raise InputError("covs_xy is not positive definite")
     p00, p01, p10, p11 = covs.reshape(-1, 4).T
     if (p01 != p10).any():
-        if (np.abs(p01 - p10) > _ASYM_TOL * (np.abs(p00) + np.abs(p11))).any():
-            raise InputError("covs_xy is not symmetric")
         p01 = 0.5 * (p01 + p10)
-    # P00 > 0 and P01^2 < P00 P11 (det P > 0) imply P11 > 0: positive definite.
-    if not ((p00 > 0.0) & (p01 * p01 < (1.0 - _CORR_TOL) * (p00 * p11))).all():
-        raise InputError("covs_xy is not positive definite")
     return means, (p00, p01, p11)
 
 

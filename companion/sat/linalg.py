@@ -6,6 +6,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+SYMMETRY_RTOL = 1e-8
+"""Largest |P01 - P10| of a covariance taken for round-off, relative to its larger diagonal entry:
+a Kalman update leaves ~1e-16, so this is a wide margin that still catches a transposed matrix."""
+
+CORRELATION_TOL = 1e-12
+"""Smallest 1 - rho^2 of a positive definite 2x2 covariance: closer to singular, determinants
+computed downstream can round to <= 0."""
 
 
 def inv_det_2x2(a: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -18,6 +27,20 @@ def inv_det_2x2(a: FloatArray) -> tuple[FloatArray, FloatArray]:
     inv[..., 1, 0] = -a[..., 1, 0]
     inv /= det[..., None, None]
     return inv, det
+
+
+def spd_2x2_faults(covs: FloatArray) -> tuple[BoolArray, BoolArray]:
+    """(not symmetric, not positive definite) of each finite 2x2 in a stack (..., 2, 2).
+
+    Symmetric: |P01 - P10| <= SYMMETRY_RTOL max(|P00|, |P11|). Positive definite, of the
+    symmetric part: P00 > 0 and P01^2 < (1 - CORRELATION_TOL) P00 P11 (so P11 > 0, det P > 0).
+    """
+    p00, p10, p01, p11 = covs[..., 0, 0], covs[..., 1, 0], covs[..., 0, 1], covs[..., 1, 1]
+    asymmetric = np.abs(p01 - p10) > SYMMETRY_RTOL * np.maximum(np.abs(p00), np.abs(p11))
+    with np.errstate(over="ignore", under="ignore"):  # P00 P11 rounds to inf (kept) or 0 (refused)
+        p01 = np.where(p01 == p10, p01, 0.5 * (p01 + p10))
+        definite = (p00 > 0.0) & (p01 * p01 < (1.0 - CORRELATION_TOL) * (p00 * p11))
+    return np.asarray(asymmetric), np.asarray(~definite)
 
 
 def inv_stack(a: FloatArray) -> FloatArray:

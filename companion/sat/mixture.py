@@ -8,6 +8,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.errors import InputError
+from companion.sat.linalg import SYMMETRY_RTOL, spd_2x2_faults
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -104,9 +105,11 @@ def check_covariances(covs: FloatArray, what: str) -> None:
         return
     scale = np.maximum(np.abs(covs).max(axis=(1, 2)), 1e-300)
     asym = np.abs(covs - np.swapaxes(covs, 1, 2)).max(axis=(1, 2))
-    if np.any(asym > 1e-9 * scale):
+    if np.any(asym > SYMMETRY_RTOL * scale):
         raise InputError(f"{what}: must be symmetric")
-    if np.any(np.linalg.eigvalsh(covs)[:, 0] <= 0.0):
+    # The position block as every 2x2 covariance, and a larger state positive definite as well.
+    if np.any(spd_2x2_faults(covs[:, :2, :2])[1]) or (
+            covs.shape[1] > 2 and np.any(np.linalg.eigvalsh(covs)[:, 0] <= 0.0)):
         raise InputError(f"{what}: must be positive definite")
 
 
