@@ -25,28 +25,23 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from companion.config import ServiceConfig, parse_config
+from companion.drive import Observation, drive
 from companion.errors import InputError
-from companion.flightlog import read_flight_log
+from companion.flightlog import FlightLog, read_flight_log
 from companion.metrics import mahalanobis_to_tracks
 from companion.pipeline import Pipeline, StepRecord, camera_model
-from companion.report import (
-    Score,
-    TrackRecord,
-    confirmed_tracks,
-    score,
-    write_csv,
-    write_geojson,
-)
-from companion.sim.plots import plot_flight, plot_mahalanobis
-from companion.vehicle.pose_buffer import PoseBuffer
-from companion.vehicle.view import height_agl_m
+from companion.plan.setpoints import tilt_cos
+from companion.report import Score, TrackRecord, confirmed_tracks, score
+from companion.run_folder import RunFolder, read_records
+from companion.vehicle.plausibility import PositionGate
+from companion.vehicle.view import VehicleView
 from companion.vision.camera import CameraModel
 from companion.vision.projection import GeoPose, PoseUncertainty
 
@@ -102,20 +97,6 @@ def load_truth(path: Path) -> FloatArray:
     return truth
 
 
-def _records(path: Path, warnings: list[str]) -> Iterator[dict[str, Any]]:
-    """The JSON lines of a file; a torn last line (a crash mid-write) ends it with a warning."""
-    lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
-    for number, line in enumerate(lines, start=1):
-        try:
-            yield json.loads(line)
-        except json.JSONDecodeError as exc:
-            if number == len(lines):
-                warnings.append(f"{path.name}: line {number} is cut short (a crash?): "
-                                f"replayed up to line {number - 1}")
-                return
-            raise InputError(f"{path}: line {number} is not JSON: {exc}") from exc
-
-
 def _camera(path: Path) -> CameraModel:
     try:
         fields: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v
@@ -142,13 +123,12 @@ class _Replay:
             self.truth_xy = frame.from_utm(np.column_stack([e, n]))
         self.t_s: list[float] = []
         self.mahalanobis: list[FloatArray] = []  # per step: each target to its closest track
-        out_dir.mkdir(parents=True, exist_ok=True)
-        self._steps: TextIO = (out_dir / "steps.jsonl").open("w", encoding="utf-8")
+        self.folder = RunFolder(out_dir)
+        self.steps = 0
 
     def add(self, record: StepRecord) -> None:
-        """Log one step; with truth, each target's Mahalanobis distance to its closest track."""
-        self._steps.write(json.dumps(record.to_json(self.pipeline.frame),
-                                     separators=(",", ":")) + "\n")
+        """Count one step; with truth, each target's Mahalanobis distance to its closest track."""
+        self.steps += 1
         state = self.pipeline.state
         if self.truth_xy is not None and state is not None:
             confirmed = state.tracks.confirmed
@@ -159,20 +139,13 @@ class _Replay:
 
     def finish(self, steps: int, flight_s: float, **summary: Any) -> ReplayResult:
         """Write the tracks, plots and summary.json; the result."""
-        self._steps.close()
+        self.folder.close()
         out, frame, state = self.out_dir, self.pipeline.frame, self.pipeline.state
         tracks = [] if state is None else confirmed_tracks(
             state.tracks, frame.origin_utm_m, frame.utm.epsg, frame.to_latlon)
-        write_geojson(out / "tracks.geojson", tracks)
-        write_csv(out / "tracks.csv", tracks)
         tracks_en = np.array([[t.easting_m, t.northing_m] for t in tracks]).reshape(-1, 2)
         targets = 0 if self.truth_xy is None else len(self.truth_xy)
         mahal = np.array(self.mahalanobis, dtype=np.float64).reshape(len(self.t_s), targets)
-        if self.config.output.plots:
-            records = [json.loads(line) for line in (out / "steps.jsonl").read_text().splitlines()]
-            plot_flight(records, tracks_en, out, frame.to_utm(frame.area_xy_m))
-            if self.truth_xy is not None:
-                plot_mahalanobis(np.array(self.t_s), mahal, out)
         body: dict[str, Any] = {"steps": steps, **summary, "confirmed": len(tracks),
                                 "warnings": self.warnings,
                                 "tracks": [dataclasses.asdict(t) for t in tracks]}
@@ -184,7 +157,9 @@ class _Replay:
                              "mahalanobis_final": _finite_or_none(final, 3),
                              "missed": result_score.missed,
                              "false_tracks": result_score.false_tracks}
-        (out / "summary.json").write_text(json.dumps(body, indent=1))
+        self.folder.write_reports(
+            tracks, body, plots=self.config.output.plots, area_en_m=frame.to_utm(frame.area_xy_m),
+            mahalanobis=None if self.truth_xy is None else (np.array(self.t_s), mahal))
         return ReplayResult(out, steps, tracks, self.warnings,
                             time.perf_counter() - self.started, flight_s, result_score)
 
@@ -210,27 +185,33 @@ def replay_run(run_dir: Path, out_dir: Path, config: ServiceConfig | None = None
     if config is None:
         config = parse_config(json.loads((run_dir / "config.json").read_text()))
     replay = _Replay(config, _camera(run_dir / "camera.json"), out_dir, truth_latlon)
-    pipeline = replay.pipeline
-    inputs = [(r["input"], r.get("blind")) for r in _records(run_dir / "steps.jsonl",
-                                                              replay.warnings) if "input" in r]
+    inputs = [(r["input"], r.get("blind")) for r in read_records(run_dir / "steps.jsonl",
+                                                                  replay.warnings) if "input" in r]
     missing = 0
-    for k, (step, blind) in enumerate(inputs):
-        if "pose" in step:
+
+    def observations() -> Iterator[Observation]:
+        nonlocal missing
+        for step, blind in inputs:
+            if "pose" not in step:
+                yield Observation.nothing(step["boot_t_s"], blind or "blind")
+                continue
             lat, lon, alt, height, *q = step["pose"]
             pose = GeoPose(step["boot_t_s"], lat, lon, alt, height, tuple(q))
             sigma = PoseUncertainty(*step["pose_sigma"]) if "pose_sigma" in step else None
             image_path = run_dir / step["frame"] if redetect and "frame" in step else None
             if image_path is not None and image_path.is_file():
-                record = pipeline.step(_read_image(image_path), pose, sigma)
+                yield Observation(pose.t_s, pose, _read_image(image_path), sigma=sigma)
             else:
                 missing += image_path is not None
                 pixels = np.array(step["pixels"], dtype=np.float64).reshape(-1, 2)
-                record = pipeline.step_detections(pixels, pose, sigma)
-        else:
-            record = pipeline.blind(step["boot_t_s"], blind or "blind")
+                yield Observation(pose.t_s, pose, pixels=pixels, sigma=sigma)
+
+    def on_step(record: StepRecord) -> None:
         replay.add(record)
         if progress is not None:
-            progress(k + 1, len(inputs))
+            progress(replay.steps, len(inputs))
+
+    drive(replay.pipeline, observations(), replay.folder, on_step)
     if missing:
         replay.warnings.append(f"{missing} kept frames are missing: their recorded detections "
                                "were used")
@@ -334,43 +315,108 @@ class _Frames:
             self._video.release()
 
 
+_M_PER_DEG_LAT = 111_320.0  # enough for a velocity between samples a fraction of a second apart
+
+
+class _LogTelemetry:
+    """A flight log's poses fed to a `VehicleView` in time order, as live telemetry is: bad
+    samples and implausible jumps (a GPS glitch) are refused as they would be in flight.
+
+    A log has no velocities for the position gate: it gets the velocity between the last two
+    positions the gate accepted (a glitch is never among them).
+    """
+
+    def __init__(self, log: FlightLog, config: ServiceConfig) -> None:
+        self.config = config
+        self._now_s = 0.0
+        self.view = VehicleView(lambda: self._now_s, config.pose.max_gap_s, PositionGate(
+            config.pose.glitch_gate_m, config.pose.glitch_accept_after_s))
+        self._positions, self._attitudes = log.positions, log.attitudes
+        self._next_position = self._next_attitude = 0
+        self._accepted: list[tuple[float, float, float]] = []  # the last two: t_s, lat, lon
+
+    def _velocity_ne(self) -> tuple[float, float]:
+        if len(self._accepted) < 2:
+            return 0.0, 0.0
+        (t0, lat0, lon0), (t1, lat1, lon1) = self._accepted
+        if t1 - t0 <= 0.0:
+            return 0.0, 0.0
+        m_per_deg_lon = _M_PER_DEG_LAT * math.cos(math.radians(lat1))
+        return ((lat1 - lat0) * _M_PER_DEG_LAT / (t1 - t0),
+                (lon1 - lon0) * m_per_deg_lon / (t1 - t0))
+
+    def _feed_until(self, until_s: float) -> None:
+        """Every sample up to until_s, positions and attitudes interleaved by time."""
+        view, pos, att = self.view, self._positions, self._attitudes
+        while True:
+            p_s = pos[self._next_position, 0] if self._next_position < len(pos) else math.inf
+            a_s = att[self._next_attitude, 0] if self._next_attitude < len(att) else math.inf
+            if min(p_s, a_s) > until_s:
+                return
+            if p_s <= a_s:
+                t_s, lat, lon, amsl, rel = (float(v) for v in pos[self._next_position])
+                self._next_position += 1
+                self._now_s = t_s
+                refused = sum(view.rejected.values())
+                view.on_position(t_s, lat, lon, amsl, rel, self._velocity_ne())
+                if sum(view.rejected.values()) == refused:
+                    self._accepted = [*self._accepted[-1:], (t_s, lat, lon)]
+            else:
+                t_s, qw, qx, qy, qz = (float(v) for v in att[self._next_attitude])
+                self._next_attitude += 1
+                self._now_s = t_s
+                view.on_attitude(t_s, (qw, qx, qy, qz))
+
+    def observation(self, t_s: float, image: NDArray[np.uint8]) -> Observation:
+        """The frame taken at t_s with the pose the live service would give it, or blind."""
+        pose_config = self.config.pose
+        self._feed_until(t_s + pose_config.max_gap_s)  # the samples that bracket t_s
+        sample = self.view.poses.at(t_s)
+        if sample is None:
+            glitch = self.view.gate.refusing_since_s is not None
+            return Observation.nothing(t_s, "implausible position (GPS glitch?)" if glitch
+                                       else "no pose at the capture time")
+        height_m, _ = self.view.height_at(t_s, sample.alt_rel_m, tilt_cos(sample.q_wxyz),
+                                          pose_config.camera_rest_height_m)
+        pose = GeoPose(t_s, sample.lat_deg, sample.lon_deg, sample.alt_amsl_m, height_m,
+                       sample.q_wxyz)
+        return Observation(t_s, pose, np.asarray(image, dtype=np.uint8))
+
+
 def replay_log(log_path: Path, frames_path: Path, out_dir: Path, config: ServiceConfig,
                times: FrameTimes, progress: Progress | None = None,
                truth_latlon: FloatArray | None = None) -> ReplayResult:
     """Detect, project and estimate over a video (or image folder) with the poses of a log."""
     log = read_flight_log(log_path)
-    buffer = PoseBuffer(max_age_s=1e9, max_gap_s=config.pose.max_gap_s)
-    for t_s, lat, lon, amsl, rel in log.positions:
-        buffer.add_position(t_s, lat, lon, amsl, rel)
-    for t_s, *q in log.attitudes:
-        buffer.add_attitude(t_s, (q[0], q[1], q[2], q[3]))
+    telemetry = _LogTelemetry(log, config)
     frames = _Frames(frames_path, times)
     replay = _Replay(config, camera_model(config.camera), out_dir, truth_latlon)
     replay.warnings.extend(log.warnings)
-    pipeline, period_s = replay.pipeline, 1.0 / config.estimator.rate_hz
-    next_s, steps, read, used = -math.inf, 0, 0, 0
+    period_s = 1.0 / config.estimator.rate_hz
+    read = used = 0
     first_s = last_s = math.nan
-    try:
+
+    def observations() -> Iterator[Observation]:
+        nonlocal read, first_s, last_s
+        next_s = -math.inf
         for k, t_s, image in frames:
             read = k + 1
             if progress is not None:
                 progress(read, frames.count)
-            if t_s < next_s:
+            if t_s < next_s or image is None:
                 continue  # one step per estimator period, as the live service does
             next_s = max(next_s + period_s, t_s)
-            sample = buffer.at(t_s)
-            if sample is None:
-                record = pipeline.blind(t_s, "no pose at the capture time")
-            else:
-                pose = GeoPose(t_s, sample.lat_deg, sample.lon_deg, sample.alt_amsl_m,
-                               height_agl_m(sample.alt_rel_m, config.pose.camera_rest_height_m),
-                               sample.q_wxyz)
-                record = pipeline.step(np.asarray(image, dtype=np.uint8), pose)
-                used += record.blind is None
-            replay.add(record)
-            steps += 1
-            first_s = t_s if steps == 1 else first_s
+            first_s = t_s if math.isnan(first_s) else first_s
             last_s = t_s
+            yield telemetry.observation(t_s, image)
+
+    def on_step(record: StepRecord) -> None:
+        nonlocal used
+        replay.add(record)
+        used += record.blind is None
+
+    try:
+        steps = drive(replay.pipeline, observations(), replay.folder, on_step)
     finally:
         frames.close()
     if read < frames.count:
@@ -380,6 +426,10 @@ def replay_log(log_path: Path, frames_path: Path, out_dir: Path, config: Service
         replay.warnings.append(f"no frame lies within the log's poses "
                                f"({log.positions[0, 0]:.1f}-{log.positions[-1, 0]:.1f} s): "
                                "check the frame times")
+    rejected = telemetry.view.rejected
+    if rejected["implausible"]:
+        replay.warnings.append(f"{rejected['implausible']} positions of the log refused as "
+                               "implausible jumps (a GPS glitch?), as in flight")
     flight_s = last_s - first_s if steps > 1 else 0.0
     return replay.finish(steps, float(flight_s), log=str(log_path), log_format=log.format,
                          frames=read, frames_used=used)

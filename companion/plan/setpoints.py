@@ -1,0 +1,90 @@
+"""Where the vehicle should be now: the carrot along the plan, and the local NED setpoint of it.
+
+Pure: the time step is passed in. The carrot moves along the planner's waypoints at the search
+speed; a lawn mower's waypoint counts as reached once the carrot is on it and the vehicle within
+REACHED_M of it. The search-frame target becomes a local NED setpoint at the search altitude
+above home. `gate_limits` puts the configured geofence and altitude band into that local frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.config import SafetyConfig
+from companion.geo import LocalNed
+from companion.plan.gate import GateLimits, Setpoint
+from companion.plan.planners import LawnMower, Planner, move_towards
+from companion.plan.world import World
+from companion.sat.mixture import Mixture
+from companion.sat.tracks import Tracks
+
+if TYPE_CHECKING:
+    from companion.pipeline import SearchFrame
+
+__all__ = ["REACHED_M", "Carrot", "gate_limits", "hold_setpoint", "search_setpoint",
+           "tilt_cos", "vehicle_xy"]
+
+FloatArray = NDArray[np.float64]
+REACHED_M = 1.5  # the vehicle is this close to a waypoint: the planner moves on
+
+
+@dataclass(frozen=True)
+class Carrot:
+    """The point the vehicle follows (None: not placed yet) and the planner's progress."""
+
+    xy_m: FloatArray | None = None
+    progress: int = 0
+
+    def advance(self, planner: Planner, vehicle_xy_m: FloatArray, mixture: Mixture,
+                tracks: Tracks, world: World, speed_m_s: float,
+                dt_s: float) -> tuple[FloatArray, Carrot]:
+        """The search-frame target now and the carrot moved on by speed_m_s * dt_s."""
+        carrot = vehicle_xy_m if self.xy_m is None else self.xy_m
+        waypoint, progress = planner.next_waypoint(carrot, mixture, tracks, world,
+                                                   self.progress)
+        if waypoint is None:
+            return carrot, Carrot(self.xy_m, progress)
+        carrot = move_towards(carrot, waypoint, speed_m_s * dt_s)
+        if (isinstance(planner, LawnMower) and np.allclose(carrot, waypoint)
+                and np.hypot(*(vehicle_xy_m - waypoint)) <= REACHED_M):
+            progress += 1
+        return carrot, Carrot(carrot, progress)
+
+
+def tilt_cos(q_wxyz: tuple[float, float, float, float]) -> float:
+    """cos of the angle between the body's down axis and the vertical (roll and pitch)."""
+    _, x, y, _ = q_wxyz
+    return 1.0 - 2.0 * (x * x + y * y)
+
+
+def gate_limits(safety: SafetyConfig, origin: LocalNed, home_amsl_m: float) -> GateLimits:
+    """The safety limits in the autopilot's local NED frame (altitudes above home)."""
+    fence = safety.geofence_latlon
+    north, east, _ = origin.geodetic_to_ned(fence[:, 0], fence[:, 1], origin.alt_m)
+    above_origin_m = home_amsl_m - origin.alt_m
+    return GateLimits(np.column_stack([north, east]), safety.min_alt_m + above_origin_m,
+                      safety.max_alt_m + above_origin_m, safety.max_speed_h_m_s,
+                      safety.max_speed_v_m_s)
+
+
+def vehicle_xy(frame: SearchFrame, lat_deg: float, lon_deg: float) -> FloatArray:
+    """The vehicle's position in the search frame."""
+    e, n = frame.utm.geodetic_to_utm(lat_deg, lon_deg)
+    return frame.from_utm(np.array([float(e), float(n)]))
+
+
+def hold_setpoint(vehicle_ned_m: FloatArray, yaw_deg: float) -> Setpoint:
+    """Stay where the vehicle is."""
+    return Setpoint(vehicle_ned_m[0], vehicle_ned_m[1], vehicle_ned_m[2], yaw_deg)
+
+
+def search_setpoint(frame: SearchFrame, origin: LocalNed, target_xy_m: FloatArray,
+                    alt_amsl_m: float, yaw_deg: float) -> Setpoint:
+    """The local NED setpoint of a search-frame target at an altitude above sea level."""
+    lat, lon = frame.to_latlon(target_xy_m)[0]
+    north, east, down = origin.geodetic_to_ned(lat, lon, alt_amsl_m)
+    return Setpoint(float(north), float(east), float(down), yaw_deg)
