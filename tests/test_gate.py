@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 from companion.errors import ConfigError
 from companion.plan.gate import (
+    GateAction,
     GateLimits,
     GateResult,
     Setpoint,
@@ -76,7 +77,7 @@ def test_closed_ring_and_point_in_non_convex_polygon() -> None:
 def test_a_safe_setpoint_passes_unchanged() -> None:
     target = sp(50.0, 50.0, 10.0, 45.0)
     result = gate(limits(), target, sp(50.5, 50.0, 10.2), np.array([50.0, 50.0, -10.0]), 0.5)
-    assert result == GateResult(target, "pass", ()) and result.setpoint is target
+    assert result == GateResult(target, GateAction.PASS, ()) and result.setpoint is target
 
 
 @pytest.mark.parametrize(

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from enum import StrEnum
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -18,11 +18,18 @@ from numpy.typing import ArrayLike, NDArray
 from companion.errors import ConfigError, InputError
 
 FloatArray = NDArray[np.float64]
-Action = Literal["pass", "clamped", "refused"]
 
 _ON_EDGE_M = 1e-9  # a point this close to the boundary counts as inside
 _MIN_MARGIN_M = 1e-3  # the inward margin is halved down to this before giving up
 _MIN_EDGE_M = 1e-6  # shorter fence edges are taken for repeated vertices
+
+
+class GateAction(StrEnum):
+    """What the gate did to a setpoint; the value is the word the logs and counters write."""
+
+    PASS = "pass"
+    CLAMPED = "clamped"
+    REFUSED = "refused"
 
 
 @dataclass(frozen=True, slots=True)
@@ -40,7 +47,7 @@ class GateResult:
     """The setpoint to send (None when refused), what the gate did and why (for the logs)."""
 
     setpoint: Setpoint | None
-    action: Action
+    action: GateAction
     reasons: tuple[str, ...]
 
 
@@ -204,7 +211,7 @@ def nearest_inside_fence(limits: GateLimits, north_east_m: ArrayLike) -> FloatAr
 
 
 def _refused(reason: str) -> GateResult:
-    return GateResult(None, "refused", (reason,))
+    return GateResult(None, GateAction.REFUSED, (reason,))
 
 
 def gate(
@@ -281,6 +288,6 @@ def gate(
         alt_m = clamped
 
     if not reasons:
-        return GateResult(setpoint, "pass", ())
+        return GateResult(setpoint, GateAction.PASS, ())
     out = Setpoint(float(ne[0]), float(ne[1]), -float(alt_m), setpoint.yaw_deg)
-    return GateResult(out, "clamped", tuple(reasons))
+    return GateResult(out, GateAction.CLAMPED, tuple(reasons))
