@@ -15,14 +15,16 @@ from __future__ import annotations
 import argparse
 import threading
 import time
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 
 from companion.camera.source import LatestFrameGrabber, MjpegSource
 from companion.config import parse_config
+from companion.drive import Observation, drive
 from companion.geo import LocalNed
-from companion.pipeline import Pipeline
+from companion.pipeline import Pipeline, StepRecord
 from companion.vision.camera import BodyPose, CameraModel
 from companion.vision.projection import GeoPose
 from sitl.camera import Renderer, Tag
@@ -64,15 +66,23 @@ def bench(width_px: int, height_px: int, seconds: float, fps: float) -> None:
         try:
             grabber.get(5.0)  # connected and flowing
             start = time.monotonic()
-            while time.monotonic() - start < seconds:
-                frame = grabber.get(1.0)
-                if frame is None or frame.capture_time_s is None:
-                    continue
-                geo = GeoPose(frame.capture_time_s, lat, lon, alt, ALTITUDE_M,
-                              (1.0, 0.0, 0.0, 0.0))
-                record = pipeline.step(frame.image, geo)
+
+            def observations() -> Iterator[Observation]:
+                while time.monotonic() - start < seconds:
+                    frame = grabber.get(1.0)
+                    if frame is None or frame.capture_time_s is None:
+                        continue
+                    geo = GeoPose(frame.capture_time_s, lat, lon, alt, ALTITUDE_M,
+                                  (1.0, 0.0, 0.0, 0.0))
+                    yield Observation(frame.capture_time_s, geo, frame.image)
+
+            def on_step(record: StepRecord) -> None:
+                nonlocal detections
                 detections += record.detections
-                latencies_ms.append(1e3 * (time.monotonic() - frame.capture_time_s))
+                capture_s = record.extra["input"]["boot_t_s"]
+                latencies_ms.append(1e3 * (time.monotonic() - capture_s))
+
+            drive(pipeline, observations(), None, on_step)
             elapsed = time.monotonic() - start
         finally:
             stop.set()
