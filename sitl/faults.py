@@ -25,18 +25,36 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 from companion.errors import ConfigError
 
-__all__ = ["CAMERA_FAULTS", "PILOT_ACTIONS", "FaultEvent", "FaultPlan", "parse_faults"]
+__all__ = ["CAMERA_FAULTS", "PILOT_ACTIONS", "FaultEvent", "FaultKind", "FaultPlan", "parse_faults"]
 
 KEY = "--faults"
-CAMERA_FAULTS = ("freeze", "black", "corrupt", "drop")
+
+
+class FaultKind(StrEnum):
+    """A timed fault; the value is how `--faults` spells it."""
+
+    CUT = "cut"
+    FREEZE = "freeze"
+    BLACK = "black"
+    CORRUPT = "corrupt"
+    DROP = "drop"
+    GPS = "gps"
+    BATTERY = "battery"
+    PILOT = "pilot"
+    REBOOT = "reboot"
+
+
+CAMERA_FAULTS = (FaultKind.FREEZE, FaultKind.BLACK, FaultKind.CORRUPT, FaultKind.DROP)
 PILOT_ACTIONS = ("posctl", "altctl", "manual", "hold", "land", "rtl", "arm", "disarm")
 _TIMED = {  # kind -> (needs a duration, argument syntax or "")
-    "cut": (True, ""), "freeze": (True, ""), "black": (True, ""), "corrupt": (True, ""),
-    "drop": (True, ""), "gps": (True, "N/E"), "battery": (False, "P"),
-    "pilot": (False, "MODE"), "reboot": (True, ""),
+    FaultKind.CUT: (True, ""), FaultKind.FREEZE: (True, ""), FaultKind.BLACK: (True, ""),
+    FaultKind.CORRUPT: (True, ""), FaultKind.DROP: (True, ""), FaultKind.GPS: (True, "N/E"),
+    FaultKind.BATTERY: (False, "P"), FaultKind.PILOT: (False, "MODE"),
+    FaultKind.REBOOT: (True, ""),
 }
 _ITEM = re.compile(r"^(?P<kind>[a-z]+)@(?P<at>[^+:]+)(\+(?P<dur>[^:]+))?(:(?P<arg>.+))?$")
 
@@ -45,10 +63,14 @@ _ITEM = re.compile(r"^(?P<kind>[a-z]+)@(?P<at>[^+:]+)(\+(?P<dur>[^:]+))?(:(?P<ar
 class FaultEvent:
     """A timed fault: `kind` at simulation second `at_s`, lasting `duration_s`, with `arg`."""
 
-    kind: str
+    kind: FaultKind
     at_s: float
     duration_s: float = 0.0
     arg: str = ""
+
+    def __post_init__(self) -> None:
+        """The kind as a FaultKind, also when given as its word (ValueError for no kind)."""
+        object.__setattr__(self, "kind", FaultKind(self.kind))
 
     def active(self, t_s: float) -> bool:
         """Whether a fault with a duration is in effect at t_s."""
@@ -70,7 +92,7 @@ class FaultPlan:
     frame_drop: float = 0.0  # probability
     events: tuple[FaultEvent, ...] = field(default_factory=tuple)
 
-    def camera_fault(self, t_s: float) -> str | None:
+    def camera_fault(self, t_s: float) -> FaultKind | None:
         """The camera fault in effect at t_s (the first listed wins), or None."""
         for e in self.events:
             if e.kind in CAMERA_FAULTS and e.active(t_s):
@@ -111,7 +133,7 @@ def _timed(item: str) -> FaultEvent:
         known = ", ".join(_TIMED)
         raise ConfigError(KEY, f"{item!r}: not a fault; timed faults are KIND@T[+D][:ARG] with "
                                f"KIND one of {known}")
-    kind = m["kind"]
+    kind = FaultKind(m["kind"])
     needs_duration, arg_syntax = _TIMED[kind]
     at_s = _number(item, m["at"], "the start time T (seconds)", 0.0)
     if needs_duration != (m["dur"] is not None):
@@ -123,15 +145,15 @@ def _timed(item: str) -> FaultEvent:
     if bool(arg) != bool(arg_syntax):
         raise ConfigError(KEY, f"{item!r}: {kind} takes " + (f"the argument :{arg_syntax}"
                                                              if arg_syntax else "no argument"))
-    if kind == "gps":
+    if kind is FaultKind.GPS:
         parts = arg.split("/")
         if len(parts) != 2:
             raise ConfigError(KEY, f"{item!r}: the jump is N/E metres, got {arg!r}")
         for p in parts:
             _number(item, p, "the jump (metres)", -10_000.0, 10_000.0)
-    elif kind == "battery":
+    elif kind is FaultKind.BATTERY:
         _number(item, arg, "the battery level (percent)", 0.0, 100.0)
-    elif kind == "pilot" and arg not in PILOT_ACTIONS:
+    elif kind is FaultKind.PILOT and arg not in PILOT_ACTIONS:
         raise ConfigError(KEY, f"{item!r}: the pilot action must be one of "
                                f"{', '.join(PILOT_ACTIONS)}, got {arg!r}")
     return FaultEvent(kind, at_s, duration_s, arg)

@@ -25,7 +25,7 @@ from companion.vision.camera import BodyPose, CameraModel
 from sitl.autopilot import AutopilotConfig, Failsafe, MockAutopilot, Snapshot
 from sitl.camera import Renderer
 from sitl.clock import SimClock
-from sitl.faults import FaultEvent, FaultPlan
+from sitl.faults import FaultEvent, FaultKind, FaultPlan
 from sitl.link import UdpLink
 from sitl.modes import Behaviour, Flavour
 from sitl.stream import MjpegServer
@@ -196,7 +196,7 @@ class Sitl:
 
     # -- faults -------------------------------------------------------------------------------
 
-    def inject(self, kind: str, duration_s: float = 0.0, arg: str = "") -> FaultEvent:
+    def inject(self, kind: FaultKind, duration_s: float = 0.0, arg: str = "") -> FaultEvent:
         """Start a fault now (what `--faults` schedules: see sitl.faults)."""
         event = FaultEvent(kind, self.clock.now_s(), duration_s, arg)
         with self._lock:
@@ -217,23 +217,23 @@ class Sitl:
 
     def _apply(self, event: FaultEvent) -> None:
         ap = self.autopilot
-        if event.kind == "cut":
+        if event.kind is FaultKind.CUT:
             ap.link.faults.cut_until_s = event.at_s + event.duration_s
-        elif event.kind == "gps":
+        elif event.kind is FaultKind.GPS:
             north_m, east_m = event.gps_offset_ne_m()
             ap.gps_glitch((north_m, east_m, 0.0), event.duration_s)
-        elif event.kind == "battery":
+        elif event.kind is FaultKind.BATTERY:
             ap.set_battery_percent(float(event.arg))
-        elif event.kind == "pilot":
+        elif event.kind is FaultKind.PILOT:
             if event.arg in ("arm", "disarm"):
                 ap.pilot_arm(event.arg == "arm")
             else:
                 ap.pilot_set_mode(_PILOT_MODES[event.arg])
-        elif event.kind == "reboot":
+        elif event.kind is FaultKind.REBOOT:
             ap.reboot(event.duration_s)
         # camera faults act frame by frame (_camera_fault)
 
-    def _camera_fault(self, t_s: float) -> str | None:
+    def _camera_fault(self, t_s: float) -> FaultKind | None:
         with self._lock:
             return FaultPlan(events=tuple(self._events)).camera_fault(t_s)
 
@@ -303,7 +303,7 @@ class CameraLoop:
     """
 
     def __init__(self, stream: MjpegServer, camera: CameraModel, clock: FrameClock,
-                 take: Callable[[float], Shot | None], fault: Callable[[float], str | None],
+                 take: Callable[[float], Shot | None], fault: Callable[[float], FaultKind | None],
                  frame_drop: float, rng: np.random.Generator,
                  frames: FrameCounts | None = None) -> None:
         self.stream = stream
@@ -338,17 +338,17 @@ class CameraLoop:
                 frames.offline += 1
                 continue
             fault = self.fault(shot.scenario_t_s)
-            if fault == "drop" or self.rng.random() < self.frame_drop:
+            if fault is FaultKind.DROP or self.rng.random() < self.frame_drop:
                 frames.dropped += 1
                 continue
-            if fault == "freeze" and last is not None:
+            if fault is FaultKind.FREEZE and last is not None:
                 image = last
-            elif fault == "black":
+            elif fault is FaultKind.BLACK:
                 image = np.zeros(self.shape_px, np.uint8)
             else:
                 image = shot.draw()
             last = image
-            if fault == "corrupt":
+            if fault is FaultKind.CORRUPT:
                 self.stream.publish_jpeg(self._garbled(image), shot.capture_time_s)
             else:
                 self.stream.publish(image, shot.capture_time_s)

@@ -19,7 +19,7 @@ from companion.sim.scenario import Scenario, load_scenario
 from companion.vision.camera import BodyPose, ground_footprint, project_points
 from companion.vision.tags import TagDetector, detect_centres
 from sitl.cli import sitl_scenarios
-from sitl.faults import FaultEvent, parse_faults
+from sitl.faults import FaultEvent, FaultKind, parse_faults
 from sitl.modes import Behaviour, Flavour, encode
 from sitl.runner import Sitl
 from sitl.stream import MjpegReader
@@ -170,20 +170,20 @@ def test_camera_faults_freeze_black_drop_and_corrupt(field: Sitl) -> None:
     with MjpegReader(field.camera_url) as reader:
         frames = iter(reader)
         next(frames)
-        field.inject("freeze", 1.0)
+        field.inject(FaultKind.FREEZE, 1.0)
         frozen = [next(frames) for _ in range(3)]
         assert all(np.array_equal(frozen[0][0], image) for image, _ in frozen[1:])
         assert [t for _, t in frozen] == sorted({t for _, t in frozen})  # new time stamps
-        field.inject("black", 1.0)
+        field.inject(FaultKind.BLACK, 1.0)
         assert _frames_after(frames, field.clock.now_s() - 1e9, 1)  # drain what was queued
         black = [image for image, _ in _frames_after(frames, 0.0, 12)]
         assert any(image.max() == 0 for image in black)
         start_s = field.autopilot.snapshot().t_s
-        field.inject("drop", 2.0)
+        field.inject(FaultKind.DROP, 2.0)
         gaps = np.diff([t for _, t in _frames_after(frames, start_s, 3)])
         _, last_s = next(frames)
         assert last_s - start_s > 1.9 or gaps.max() > 1.9  # two seconds without a frame
-        field.inject("corrupt", 2.0)
+        field.inject(FaultKind.CORRUPT, 2.0)
         deadline = time.monotonic() + 2.0 / SPEEDUP + 2.0
         while reader.corrupt_frames == 0 and time.monotonic() < deadline:
             next(frames)
@@ -256,6 +256,6 @@ def test_command_rejects_bad_input_in_one_line(args: list[str], message: str) ->
 
 
 def test_fault_events_are_ordered_and_active_in_their_window() -> None:
-    event = FaultEvent("cut", 10.0, 5.0)
+    event = FaultEvent(FaultKind.CUT, 10.0, 5.0)
     assert not event.active(9.99) and event.active(10.0) and not event.active(15.0)
     assert math.isclose(parse_faults("cut@3+1,freeze@1+1").events[0].at_s, 1.0)
