@@ -1,10 +1,10 @@
 """The service's configuration file (TOML), validated in full before anything starts.
 
 Every key is declared once in `SECTIONS` (kind and range, default, one-line doc), as the scenario
-keys are. `load_config` returns a frozen `ServiceConfig` or raises `ConfigError` naming the first
-bad key and the reason. `companion check-config FILE` and `companion run` use it, and
-`docs/configuration.md` is generated from the declarations
-(`python -m companion.config --markdown`).
+keys are. `load_config` returns a frozen `ServiceConfig` or raises `ConfigError` naming the bad
+key and the reason (`AggregateConfigError`, one line per key, when several are bad).
+`companion check-config FILE` and `companion run` use it, and `docs/configuration.md` is
+generated from the declarations (`python -m companion.config --markdown`).
 """
 
 from __future__ import annotations
@@ -15,13 +15,14 @@ import json
 import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.errors import ConfigError
+from companion.errors import ConfigError, ErrorCollector, InputError
 from companion.geo import Utm, utm_zone_for
 from companion.keys import (
     REQUIRED,
@@ -344,61 +345,101 @@ def _relative(base: Path | None, path: str) -> str:
     return str(p if p.is_absolute() or base is None else base / p)
 
 
-def parse_config(data: Mapping[str, Any], base: Path | None = None) -> ServiceConfig:
-    """The ServiceConfig of TOML data (relative paths against base); ConfigError names a bad key."""
-    if not isinstance(data, Mapping):
-        raise ConfigError("config", "must be a table of sections")
-    for section in data:
-        if section not in SECTIONS:
-            raise unknown_key(str(section), str(section), list(SECTIONS))
+def _utm_epsg(key: str, epsg: int) -> int:
+    """epsg after checking that it is a WGS84 / UTM zone; the core's reason under our key."""
+    try:
+        Utm(epsg)
+    except InputError as exc:
+        raise ConfigError(key, exc.reason) from exc
+    return epsg
 
-    def read(section: str) -> dict[str, Any]:
-        return read_table(section_table(data, section), section, SECTIONS[section])
 
-    camera = read("camera")
-    if camera["calibration"] is not None:
-        camera["calibration"] = _relative(base, camera["calibration"])
-    search = read("search")
+def _search(search: dict[str, Any]) -> dict[str, Any]:
+    """[search] with its area checked and its UTM zone derived (when not given) and checked."""
     area = _latlon_polygon("search.area", search["area_latlon"])
     if search["utm_epsg"] is None:
         lat, lon = area.mean(axis=0)
         search["utm_epsg"] = utm_zone_for(float(lat), float(lon))
-    try:
-        Utm(search["utm_epsg"])  # checks the code
-    except ConfigError as exc:  # Utm names the scenario's key (geo.utm_epsg); here it is ours
-        raise ConfigError("search.utm_epsg", exc.problem) from exc
-    safety = read("safety")
+    _utm_epsg("search.utm_epsg", search["utm_epsg"])
+    return search
+
+
+def _safety(safety: dict[str, Any], area: FloatArray | None) -> dict[str, Any]:
+    """[safety] with its geofence (the search area by default) and altitude band checked."""
     if safety["geofence_latlon"] is None:
+        if area is None:  # the search area is wrong: reported as such
+            return safety
         safety["geofence_latlon"] = area
     _latlon_polygon("safety.geofence", safety["geofence_latlon"])
     low_m, high_m = safety["min_alt_m"], safety["max_alt_m"]
     if low_m >= high_m:
         raise ConfigError("safety.max_alt_m",
                           f"must be above safety.min_alt_m ({low_m!r}), got {high_m!r}")
-    if not low_m <= search["altitude_m"] <= high_m:
-        raise ConfigError("search.altitude_m", f"must lie in the safety band [{low_m!r}, "
-                                               f"{high_m!r}], got {search['altitude_m']!r}")
-    mission = read("mission")
-    if mission["end"] == "targets" and search["expected_targets"] is None:
-        raise ConfigError("search.expected_targets", "is required when mission.end = \"targets\"")
-    output = read("output")
-    output["dir"] = _relative(base, output["dir"])
-    vehicle = read("vehicle")
-    if vehicle["signing_key_file"] is not None:
-        vehicle["signing_key_file"] = _relative(base, vehicle["signing_key_file"])
+    return safety
+
+
+def _cross_sections(t: dict[str, dict[str, Any]], errors: ErrorCollector) -> None:
+    """The rules across sections, each checked when the sections it reads are sound."""
+    search, safety, mission = t.get("search"), t.get("safety"), t.get("mission")
+    if search is not None and safety is not None:
+        low_m, high_m = safety["min_alt_m"], safety["max_alt_m"]
+        if not low_m <= search["altitude_m"] <= high_m:
+            errors.add(ConfigError("search.altitude_m", f"must lie in the safety band [{low_m!r}, "
+                                   f"{high_m!r}], got {search['altitude_m']!r}"))
+    if (search is not None and mission is not None and mission["end"] == "targets"
+            and search["expected_targets"] is None):
+        errors.add(ConfigError("search.expected_targets",
+                               "is required when mission.end = \"targets\""))
+
+
+def _relative_paths(t: dict[str, dict[str, Any]], base: Path | None) -> None:
+    """The file names of the configuration made relative to its folder."""
+    for section, leaf in (("camera", "calibration"), ("output", "dir"),
+                          ("vehicle", "signing_key_file")):
+        if section in t and t[section][leaf] is not None:
+            t[section][leaf] = _relative(base, t[section][leaf])
+
+
+def parse_config(data: Mapping[str, Any], base: Path | None = None) -> ServiceConfig:
+    """The ServiceConfig of TOML data (relative paths against base); ConfigError names a bad key,
+    AggregateConfigError lists every bad key when there are several."""
+    if not isinstance(data, Mapping):
+        raise ConfigError("config", "must be a table of sections")
+    errors = ErrorCollector()
+    for section in data:
+        if section not in SECTIONS:
+            errors.add(unknown_key(str(section), str(section), list(SECTIONS)))
+    tables: dict[str, dict[str, Any]] = {}
+    for section, keys in SECTIONS.items():
+        read = errors.attempt(partial(_read_section, data, section, keys))
+        if read is not None:
+            tables[section] = read
+    if "search" in tables and errors.attempt(partial(_search, tables["search"])) is None:
+        del tables["search"]
+    area = tables["search"]["area_latlon"] if "search" in tables else None
+    if "safety" in tables and errors.attempt(partial(_safety, tables["safety"], area)) is None:
+        del tables["safety"]
+    _cross_sections(tables, errors)
+    errors.raise_any()
+    _relative_paths(tables, base)
     return ServiceConfig(
-        vehicle=VehicleConfig(**vehicle),
-        camera=CameraConfig(**camera),
-        detector=DetectorConfig(**read("detector")),
-        pose=PoseConfig(**read("pose")),
-        estimator=EstimatorConfig(**read("estimator")),
-        filter=FilterSpec(**read("filter")),
-        search=SearchConfig(**search),
-        safety=SafetyConfig(**safety),
-        mission=MissionConfig(**mission),
-        output=OutputConfig(**output),
+        vehicle=VehicleConfig(**tables["vehicle"]),
+        camera=CameraConfig(**tables["camera"]),
+        detector=DetectorConfig(**tables["detector"]),
+        pose=PoseConfig(**tables["pose"]),
+        estimator=EstimatorConfig(**tables["estimator"]),
+        filter=FilterSpec(**tables["filter"]),
+        search=SearchConfig(**tables["search"]),
+        safety=SafetyConfig(**tables["safety"]),
+        mission=MissionConfig(**tables["mission"]),
+        output=OutputConfig(**tables["output"]),
         data=copy.deepcopy(dict(data)),
     )
+
+
+def _read_section(data: Mapping[str, Any], section: str, keys: Sequence[Key]) -> dict[str, Any]:
+    """One section's checked values (field name -> value)."""
+    return read_table(section_table(data, section), section, keys)
 
 
 def load_config(path: str | Path) -> ServiceConfig:

@@ -14,18 +14,19 @@ from numpy.typing import ArrayLike, NDArray
 from pyproj import CRS, Transformer
 from pyproj.enums import TransformDirection
 
-from companion.errors import ConfigError
+from companion.errors import InputError
 
 FloatArray = NDArray[np.float64]
 
 __all__ = ["LocalNed", "Utm", "utm_zone_for"]
 
 
-def _check_geodetic(lat_deg: float, lon_deg: float, key: str) -> None:
+def _check_geodetic(lat_deg: float, lon_deg: float) -> None:
+    """InputError unless a finite latitude in [-90, 90] and longitude in [-180, 180] degrees."""
     if not (np.isfinite(lat_deg) and -90.0 <= lat_deg <= 90.0):
-        raise ConfigError(key, f"latitude must be in [-90, 90] degrees, got {lat_deg!r}")
+        raise InputError(f"latitude must be in [-90, 90] degrees, got {lat_deg!r}")
     if not (np.isfinite(lon_deg) and -180.0 <= lon_deg <= 180.0):
-        raise ConfigError(key, f"longitude must be in [-180, 180] degrees, got {lon_deg!r}")
+        raise InputError(f"longitude must be in [-180, 180] degrees, got {lon_deg!r}")
 
 
 @dataclass(frozen=True)
@@ -41,7 +42,7 @@ class LocalNed:
     _enu: Transformer = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        _check_geodetic(self.lat_deg, self.lon_deg, "geo.origin")
+        _check_geodetic(self.lat_deg, self.lon_deg)
         pipeline = (
             "+proj=pipeline +step +proj=axisswap +order=2,1 +step +proj=unitconvert "
             "+xy_in=deg +xy_out=rad +step +proj=cart +ellps=WGS84 "
@@ -72,7 +73,7 @@ class LocalNed:
 
 def utm_zone_for(lat_deg: float, lon_deg: float) -> int:
     """The EPSG code of the WGS84 / UTM zone that contains a point (326xx north, 327xx south)."""
-    _check_geodetic(lat_deg, lon_deg, "geo.origin")
+    _check_geodetic(lat_deg, lon_deg)
     zone = int((lon_deg + 180.0) // 6.0) % 60 + 1
     return (32600 if lat_deg >= 0.0 else 32700) + zone
 
@@ -87,8 +88,8 @@ class Utm:
 
     def __post_init__(self) -> None:
         if not (32601 <= self.epsg <= 32660 or 32701 <= self.epsg <= 32760):
-            raise ConfigError("geo.utm_epsg", f"must be a WGS84 / UTM zone (326xx, 327xx), "
-                                              f"got {self.epsg!r}")
+            reason = f"must be a WGS84 / UTM zone (326xx, 327xx), got {self.epsg!r}"
+            raise InputError(f"the EPSG code {reason}", reason=reason)
         crs = CRS.from_epsg(self.epsg)
         object.__setattr__(
             self, "_forward", Transformer.from_crs("EPSG:4326", crs, always_xy=True)

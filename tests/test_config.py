@@ -9,6 +9,7 @@ from typing import Any
 
 import pytest
 
+from companion.cli import main
 from companion.config import SECTIONS, load_config, parse_config, schema_markdown
 from companion.errors import ConfigError
 
@@ -98,3 +99,28 @@ def test_check_config_command(tmp_path: Path) -> None:
     assert done.returncode == 2
     assert done.stderr == "companion: search.area: must have at least 3 [lat, lon] vertices, " \
                           "got 1\n"
+
+
+def test_check_config_lists_every_error_of_a_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A wrong type, an unknown key and an out-of-range value: all three, in one run, exit 2."""
+    bad = tmp_path / "three.toml"
+    bad.write_text('[camera]\nsource = "0"\n[search]\narea = ' + repr(AREA) + "\n"
+                   'speed_m_s = 99.0\n[detector]\nthreads = "two"\n[mission]\nauto_land = true\n')
+    assert main(["check-config", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert 'detector.threads: must be an integer, got string "two"' in err
+    assert "mission.auto_land: unknown key" in err
+    assert "search.speed_m_s: must be " in err and "got 99.0" in err
+    assert err.count("\n") == 3, err
+
+
+def test_every_error_is_reported_within_and_across_tables() -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_config(_minimal(pose={"max_gap_s": 0, "vertical_std_m": "x"},
+                              safety={"min_alt_m": 40.0}, nonsense={}))
+    keys = [e.key for e in info.value.errors]
+    assert keys == ["nonsense", "pose.vertical_std_m", "pose.max_gap_s", "safety.max_alt_m"]
+    assert str(info.value).splitlines() == [str(e) for e in info.value.errors]
+    assert str(info.value).startswith(f"{info.value.key}: {info.value.problem}")

@@ -17,6 +17,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from companion.cli import main as companion_main
 from companion.errors import ConfigError
 from companion.plan.planners import PlannerKind
 from companion.sat.gp import GpParams
@@ -887,3 +888,22 @@ def test_points_on_a_circle_in_order_are_accepted(
     given_xy = ccw[::-1] if clockwise else ccw
     s = parse_scenario(_with("sensor", fov="polygon", fov_polygon=given_xy.tolist()))
     np.testing.assert_array_equal(s.sensor.fov_polygon_xy, ccw)
+
+
+def test_a_scenario_check_lists_every_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A wrong type, an unknown key and an out-of-range value: all three, in one run, exit 2,
+    from the scenario checker and from `companion simulate` alike."""
+    bad = tmp_path / "three.toml"
+    bad.write_text('seed = "one"\n[robot]\nwings = 2\n[sensor]\np_detect = 1.5\n')
+    assert sc.main([str(bad)]) == 2
+    lines = capsys.readouterr().err.splitlines()
+    assert lines == [
+        'seed: must be an integer, got string "one"',
+        "sensor.p_detect: must be in [0, 1], got 1.5",
+        "robot.wings: unknown key (known: start, speed, planner, lane_spacing, sweeps)",
+    ]
+    assert companion_main(["simulate", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert all(key in err for key in ("seed:", "robot.wings:", "sensor.p_detect:")), err

@@ -32,7 +32,7 @@ import numpy.typing as npt
 from numba import njit
 from scipy.optimize import minimize
 
-from companion.errors import ConfigError, InputError
+from companion.errors import InputError
 
 __all__ = ["GpFit", "GpParams", "GpPredictor", "gp_predict", "learn_gp_params", "predict_fit"]
 
@@ -58,11 +58,12 @@ _SN_BOUNDS_REL = (1e-3, 1e2)
 _LAMBDA_BOUNDS_REL = (2.0, 1e2)  # x median time step (low), x longest chunk span (high)
 
 
-def _check_positive(key: str, value: float) -> None:
+def _check_positive(name: str, value: float) -> None:
+    """InputError naming the parameter unless value is a finite number > 0."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ConfigError(key, f"must be a number, got {value!r}")
+        raise InputError(f"GP {name} must be a number, got {value!r}")
     if not math.isfinite(value) or value <= 0.0:
-        raise ConfigError(key, f"must be finite and > 0, got {value!r}")
+        raise InputError(f"GP {name} must be finite and > 0, got {value!r}")
 
 
 @dataclass(frozen=True, slots=True)
@@ -95,13 +96,13 @@ class GpParams:
     window: int = 30
 
     def __post_init__(self) -> None:
-        _check_positive("filter.gp_sigma_f", self.sigma_f_m)
-        _check_positive("filter.gp_lengthscale", self.lengthscale_s)
-        _check_positive("filter.gp_sigma_n", self.sigma_n_m)
+        _check_positive("sigma_f_m", self.sigma_f_m)
+        _check_positive("lengthscale_s", self.lengthscale_s)
+        _check_positive("sigma_n_m", self.sigma_n_m)
         if isinstance(self.window, bool) or not isinstance(self.window, (int, np.integer)):
-            raise ConfigError("filter.gp_window", f"must be an integer, got {self.window!r}")
+            raise InputError(f"GP window must be an integer, got {self.window!r}")
         if self.window < 2:
-            raise ConfigError("filter.gp_window", f"must be >= 2, got {self.window!r}")
+            raise InputError(f"GP window must be >= 2, got {self.window!r}")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -321,9 +322,9 @@ class GpPredictor:
 
     def __init__(self, params: GpParams, cache_size: int = 256) -> None:
         if isinstance(cache_size, bool) or not isinstance(cache_size, (int, np.integer)):
-            raise ConfigError("filter.gp_cache_size", f"must be an integer, got {cache_size!r}")
+            raise InputError(f"GP cache size must be an integer, got {cache_size!r}")
         if cache_size < 0:
-            raise ConfigError("filter.gp_cache_size", f"must be >= 0, got {cache_size!r}")
+            raise InputError(f"GP cache size must be >= 0, got {cache_size!r}")
         self._params = params
         self._cache_size = int(cache_size)
         self._cache: OrderedDict[bytes, FloatArray] = OrderedDict()
@@ -543,7 +544,7 @@ def learn_gp_params(
     `init` (if given) and a few data-driven guesses; the best optimum wins.
     """
     if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or window < 2:
-        raise ConfigError("filter.gp_window", f"must be an integer >= 2, got {window!r}")
+        raise InputError(f"GP window must be an integer >= 2, got {window!r}")
     groups, n_obs = _chunk_trajectories(trajectories, int(window))
 
     resid = np.concatenate([g.y.ravel() for g in groups])

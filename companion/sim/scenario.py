@@ -18,7 +18,7 @@ import argparse
 import dataclasses
 import math
 import sys
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, TypeVar
@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import ConvexHull
 
-from companion.errors import ConfigError
+from companion.errors import ConfigError, ErrorCollector, InputError
 from companion.geo import LocalNed, Utm, utm_zone_for
 from companion.keys import (
     REQUIRED,
@@ -611,8 +611,14 @@ def _geo(v: dict[str, Any], world: WorldSpec) -> GeoSpec:
     if v["utm_epsg"] is None:
         lat, lon, _ = GeoSpec(v["origin"], 0).local_ned().ned_to_geodetic(
             world.size_m[1] / 2.0, world.size_m[0] / 2.0, 0.0)
-        v["utm_epsg"] = utm_zone_for(float(lat), float(lon))
-    Utm(v["utm_epsg"])  # ConfigError("geo.utm_epsg") unless a UTM zone
+        try:
+            v["utm_epsg"] = utm_zone_for(float(lat), float(lon))
+        except InputError as exc:  # the world's centre is off the Earth's coordinates
+            raise ConfigError("geo.origin", f"the world's centre: {exc.reason}") from exc
+    try:
+        Utm(v["utm_epsg"])
+    except InputError as exc:
+        raise ConfigError("geo.utm_epsg", exc.reason) from exc
     return GeoSpec(**v)
 
 
@@ -666,37 +672,65 @@ def _belief(v: dict[str, Any], n_targets: int) -> BeliefSpec:
 
 
 def parse_scenario(data: Mapping[str, Any], name: str = "scenario") -> Scenario:
-    """The Scenario described by TOML data (`name` when it has no name key); ConfigError if bad."""
+    """The Scenario described by TOML data (`name` when it has no name key); ConfigError if bad,
+    AggregateConfigError listing every bad key when there are several."""
     if not isinstance(data, Mapping):
         raise ConfigError(name, f"must be a table of scenario keys, got {describe(data)}")
+    errors = ErrorCollector()
     top_known = [k.leaf for k in _TOP] + list(_SECTIONS)
     for key in data:
         if key not in top_known:
-            raise unknown_key(str(key), str(key), top_known)
-    top = read_table({k: data[k] for k in data if k not in _SECTIONS}, "", _TOP)
-    if top["name"] is None:
-        top["name"] = Text().parse("name", name)
-    world = WorldSpec(**read_table(section_table(data, "world"), "world", _SECTIONS["world"]))
+            errors.add(unknown_key(str(key), str(key), top_known))
 
-    def read(section: str) -> dict[str, Any]:
-        return read_table(section_table(data, section), section, _SECTIONS[section])
+    def top_table() -> dict[str, Any]:
+        top = read_table({k: data[k] for k in data if k in top_known and k not in _SECTIONS},
+                         "", _TOP)
+        if top["name"] is None:
+            top["name"] = Text().parse("name", name)
+        return top
 
-    targets = _targets(read("targets"), world)
-    camera = _camera(read("camera"))
-    vehicle = VehicleSpec(**read("vehicle"))
+    def read(section: str) -> dict[str, Any] | None:
+        keys = _SECTIONS[section]
+        return errors.attempt(lambda: read_table(section_table(data, section), section, keys))
+
+    def build(make: Callable[..., T], values: dict[str, Any] | None, *needs: object) -> T | None:
+        if values is None or any(n is None for n in needs):
+            return None
+        return errors.attempt(lambda: make(values, *needs))
+
+    top = errors.attempt(top_table)
+    world_v = read("world")
+    world = None if world_v is None else WorldSpec(**world_v)
+    targets = build(_targets, read("targets"), world)
+    camera = build(_camera, read("camera"))
+    vehicle_v = read("vehicle")
+    vehicle = None if vehicle_v is None else VehicleSpec(**vehicle_v)
+    sensor = build(_sensor, read("sensor"), camera, vehicle)
+    robot = build(_robot, read("robot"), world)
+    belief = build(_belief, read("belief"), None if targets is None else targets.count)
+    filter_v, metrics_v = read("filter"), read("metrics")
+    geo = build(_geo, read("geo"), world)
+    errors.raise_any()
+    assert top is not None and filter_v is not None and metrics_v is not None  # else raised
     return Scenario(
         **top,
-        world=world,
-        targets=targets,
-        sensor=_sensor(read("sensor"), camera, vehicle),
-        robot=_robot(read("robot"), world),
-        belief=_belief(read("belief"), targets.count),
-        filter=FilterSpec(**read("filter")),
-        metrics=MetricsSpec(**read("metrics")),
-        geo=_geo(read("geo"), world),
-        camera=camera,
-        vehicle=vehicle,
+        world=_sound(world),
+        targets=_sound(targets),
+        sensor=_sound(sensor),
+        robot=_sound(robot),
+        belief=_sound(belief),
+        filter=FilterSpec(**filter_v),
+        metrics=MetricsSpec(**metrics_v),
+        geo=_sound(geo),
+        camera=_sound(camera),
+        vehicle=_sound(vehicle),
     )
+
+
+def _sound(value: T | None) -> T:
+    """A part that was read without error (every error has been raised before)."""
+    assert value is not None
+    return value
 
 
 def load_scenario(path: str | Path, seed: int | None = None) -> Scenario:
