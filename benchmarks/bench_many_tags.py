@@ -21,28 +21,20 @@ apart) it confirms fewer tracks than there are tags.
 
 from __future__ import annotations
 
-import argparse
 import math
-import threading
 import time
 from collections.abc import Iterator
-from typing import Any
 
 import numpy as np
 
-from companion.camera.source import LatestFrameGrabber, MjpegSource
-from companion.config import parse_config
 from companion.drive import Observation, drive
-from companion.geo import LocalNed
 from companion.pipeline import Pipeline, StepRecord
 from companion.vision.camera import BodyPose, CameraModel
-from companion.vision.projection import GeoPose
 from companion.vision.tags import detect_centres
 from sitl.camera import Renderer, Tag
 from sitl.figures import record_figure
-from sitl.stream import MjpegServer, publish_at_rate
+from sitl.rig import geo_pose, pipeline_config, published_frames, run_resolutions
 
-ORIGIN = LocalNed(47.397742, 8.545594, 488.0)
 TAG_SIZE_M = 0.5
 GRID_COLS, GRID_ROWS = 10, 5  # across (east) x along (north) the image
 GRID_FILL = 0.85  # share of the footprint the grid spans
@@ -68,24 +60,6 @@ def grid_tags(camera: CameraModel, altitude_m: float, rng: np.random.Generator) 
             for i, (n, e) in enumerate((n, e) for n in north for e in east)]
 
 
-def pipeline_config(camera: CameraModel) -> Any:
-    """A service configuration for this camera over a 60 m square around the origin."""
-    corners = [ORIGIN.ned_to_geodetic(n, e, 0.0)[:2] for n, e in
-               ((-30, -30), (-30, 30), (30, 30), (30, -30))]
-    return parse_config({
-        "camera": {"source": "bench", "width_px": camera.width_px,
-                   "height_px": camera.height_px},
-        "search": {"area": [[float(a), float(b)] for a, b in corners]},
-        "detector": {"threads": 2},
-    })
-
-
-def geo_pose(t_s: float, altitude_m: float) -> GeoPose:
-    """The level, north-facing pose over the origin at altitude_m, at time t_s."""
-    lat, lon, alt = (float(v) for v in ORIGIN.ned_to_geodetic(0.0, 0.0, -altitude_m))
-    return GeoPose(t_s, lat, lon, alt, altitude_m, (1.0, 0.0, 0.0, 0.0))
-
-
 def bench(width_px: int, height_px: int, seconds: float, fps: float) -> None:
     """Print the figures for one resolution."""
     camera = CameraModel.from_hfov(90.0, width_px, height_px)
@@ -96,45 +70,34 @@ def bench(width_px: int, height_px: int, seconds: float, fps: float) -> None:
     pose = BodyPose(0.0, 0.0, 0.0, -altitude_m, (1.0, 0.0, 0.0, 0.0))
     frames = [renderer.render(pose, tags, rng) for _ in range(30)]  # differ by exposure noise
     pipeline = Pipeline(pipeline_config(camera), camera)
-    stop, published = threading.Event(), [0]
     detections: list[int] = []
     measurements: list[int] = []
     step_ms: list[float] = []
     latencies_ms: list[float] = []
-    with MjpegServer() as server:
-        publisher = threading.Thread(target=publish_at_rate,
-                                     args=(server, frames, fps, stop, published))
-        publisher.start()
-        grabber = LatestFrameGrabber(MjpegSource(server.url)).start()
-        try:
-            grabber.get(5.0)  # connected and flowing
-            published_before, dropped_before = published[0], grabber.dropped
-            start = time.monotonic()
-            step_started = [0.0]  # when the step under way began
+    with published_frames(frames, fps) as (grabber, published):
+        published_before, dropped_before = published[0], grabber.dropped
+        start = time.monotonic()
+        step_started = [0.0]  # when the step under way began
 
-            def observations() -> Iterator[Observation]:
-                while time.monotonic() - start < seconds:
-                    frame = grabber.get(1.0)
-                    if frame is None or frame.capture_time_s is None:
-                        continue
-                    step_started[0] = time.perf_counter()
-                    yield Observation(frame.capture_time_s,
-                                      geo_pose(frame.capture_time_s, altitude_m), frame.image)
+        def observations() -> Iterator[Observation]:
+            while time.monotonic() - start < seconds:
+                frame = grabber.get(1.0)
+                if frame is None or frame.capture_time_s is None:
+                    continue
+                step_started[0] = time.perf_counter()
+                yield Observation(frame.capture_time_s,
+                                  geo_pose(frame.capture_time_s, altitude_m), frame.image)
 
-            def on_step(record: StepRecord) -> None:
-                step_ms.append(1e3 * (time.perf_counter() - step_started[0]))
-                detections.append(record.detections)
-                measurements.append(len(record.measurements_xy_m))
-                latencies_ms.append(1e3 * (time.monotonic() - record.extra["input"]["boot_t_s"]))
+        def on_step(record: StepRecord) -> None:
+            step_ms.append(1e3 * (time.perf_counter() - step_started[0]))
+            detections.append(record.detections)
+            measurements.append(len(record.measurements_xy_m))
+            latencies_ms.append(1e3 * (time.monotonic() - record.extra["input"]["boot_t_s"]))
 
-            drive(pipeline, observations(), None, on_step)
-            elapsed_s = time.monotonic() - start
-            n_published = published[0] - published_before
-            n_dropped = grabber.dropped - dropped_before
-        finally:
-            stop.set()
-            publisher.join()
-            grabber.stop()
+        drive(pipeline, observations(), None, on_step)
+        elapsed_s = time.monotonic() - start
+        n_published = published[0] - published_before
+        n_dropped = grabber.dropped - dropped_before
     detect_ms = []
     det = pipeline.config.detector
     for image in frames[:10]:
@@ -169,12 +132,7 @@ def bench(width_px: int, height_px: int, seconds: float, fps: float) -> None:
 
 def main() -> None:
     """Print the figures."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seconds", type=float, default=10.0, help="per resolution")
-    parser.add_argument("--fps", type=float, default=30.0, help="camera frame rate")
-    args = parser.parse_args()
-    for width_px, height_px in ((640, 480), (1280, 720)):
-        bench(width_px, height_px, args.seconds, args.fps)
+    run_resolutions(__doc__.splitlines()[0], bench)
 
 
 if __name__ == "__main__":

@@ -12,39 +12,20 @@ tracks (median, p95, and its first and last fifths: a backlog would make the las
 
 from __future__ import annotations
 
-import argparse
-import threading
 import time
 from collections.abc import Iterator
-from typing import Any
 
 import numpy as np
 
-from companion.camera.source import LatestFrameGrabber, MjpegSource
-from companion.config import parse_config
 from companion.drive import Observation, drive
-from companion.geo import LocalNed
 from companion.pipeline import Pipeline, StepRecord
 from companion.vision.camera import BodyPose, CameraModel
-from companion.vision.projection import GeoPose
 from sitl.camera import Renderer, Tag
-from sitl.stream import MjpegServer, publish_at_rate
+from sitl.rig import geo_pose, pipeline_config, published_frames, run_resolutions
 
 ALTITUDE_M = 8.0
-ORIGIN = LocalNed(47.397742, 8.545594, 488.0)
 TAGS = [Tag(i, n, e, 0.5, 0.4 * i) for i, (n, e) in
         enumerate([(0.0, 0.0), (3.0, 4.0), (-3.0, 5.0), (2.5, -5.5), (-3.5, -4.0)])]
-
-
-def _config(camera: CameraModel) -> Any:
-    corners = [ORIGIN.ned_to_geodetic(n, e, 0.0)[:2] for n, e in
-               ((-30, -30), (-30, 30), (30, 30), (30, -30))]
-    return parse_config({
-        "camera": {"source": "bench", "width_px": camera.width_px,
-                   "height_px": camera.height_px},
-        "search": {"area": [[float(a), float(b)] for a, b in corners]},
-        "detector": {"threads": 2},
-    })
 
 
 def bench(width_px: int, height_px: int, seconds: float, fps: float) -> None:
@@ -53,41 +34,28 @@ def bench(width_px: int, height_px: int, seconds: float, fps: float) -> None:
     rng = np.random.default_rng(0)
     pose = BodyPose(0.0, 0.0, 0.0, -ALTITUDE_M, (1.0, 0.0, 0.0, 0.0))
     frames = [renderer.render(pose, TAGS, rng) for _ in range(30)]
-    pipeline = Pipeline(_config(camera), camera)
-    lat, lon, alt = (float(v) for v in ORIGIN.ned_to_geodetic(0.0, 0.0, -ALTITUDE_M))
-    stop, published = threading.Event(), [0]
-    with MjpegServer() as server:
-        publisher = threading.Thread(target=publish_at_rate,
-                                     args=(server, frames, fps, stop, published))
-        publisher.start()
-        grabber = LatestFrameGrabber(MjpegSource(server.url)).start()
-        latencies_ms: list[float] = []
-        detections = 0
-        try:
-            grabber.get(5.0)  # connected and flowing
-            start = time.monotonic()
+    pipeline = Pipeline(pipeline_config(camera), camera)
+    latencies_ms: list[float] = []
+    detections = 0
+    with published_frames(frames, fps) as (grabber, published):
+        start = time.monotonic()
 
-            def observations() -> Iterator[Observation]:
-                while time.monotonic() - start < seconds:
-                    frame = grabber.get(1.0)
-                    if frame is None or frame.capture_time_s is None:
-                        continue
-                    geo = GeoPose(frame.capture_time_s, lat, lon, alt, ALTITUDE_M,
-                                  (1.0, 0.0, 0.0, 0.0))
-                    yield Observation(frame.capture_time_s, geo, frame.image)
+        def observations() -> Iterator[Observation]:
+            while time.monotonic() - start < seconds:
+                frame = grabber.get(1.0)
+                if frame is None or frame.capture_time_s is None:
+                    continue
+                yield Observation(frame.capture_time_s,
+                                  geo_pose(frame.capture_time_s, ALTITUDE_M), frame.image)
 
-            def on_step(record: StepRecord) -> None:
-                nonlocal detections
-                detections += record.detections
-                capture_s = record.extra["input"]["boot_t_s"]
-                latencies_ms.append(1e3 * (time.monotonic() - capture_s))
+        def on_step(record: StepRecord) -> None:
+            nonlocal detections
+            detections += record.detections
+            capture_s = record.extra["input"]["boot_t_s"]
+            latencies_ms.append(1e3 * (time.monotonic() - capture_s))
 
-            drive(pipeline, observations(), None, on_step)
-            elapsed = time.monotonic() - start
-        finally:
-            stop.set()
-            publisher.join()
-            grabber.stop()
+        drive(pipeline, observations(), None, on_step)
+        elapsed = time.monotonic() - start
     lat_ms = np.array(latencies_ms)
     fifth = max(len(lat_ms) // 5, 1)
     print(f"{width_px}x{height_px}: {len(lat_ms) / elapsed:5.1f} frames/s processed of "
@@ -100,12 +68,7 @@ def bench(width_px: int, height_px: int, seconds: float, fps: float) -> None:
 
 def main() -> None:
     """Print the figures."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seconds", type=float, default=10.0, help="per resolution")
-    parser.add_argument("--fps", type=float, default=30.0, help="camera frame rate")
-    args = parser.parse_args()
-    for width_px, height_px in ((640, 480), (1280, 720)):
-        bench(width_px, height_px, args.seconds, args.fps)
+    run_resolutions(__doc__.splitlines()[0], bench)
 
 
 if __name__ == "__main__":
