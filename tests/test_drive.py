@@ -14,7 +14,7 @@ from companion.config import ServiceConfig, load_config
 from companion.drive import Observation, drive, observe
 from companion.errors import InputError
 from companion.flightlog import FlightLog
-from companion.pipeline import Pipeline, camera_model
+from companion.pipeline import Pipeline, StepRecord, camera_model
 from companion.replay import _LogTelemetry
 from companion.vision.projection import GeoPose
 
@@ -43,7 +43,7 @@ class _Sink:
 def test_each_observation_steps_the_pipeline_its_way(config: ServiceConfig) -> None:
     pipeline = Pipeline(config, camera_model(config.camera))
     centre = np.array([[config.camera.width_px / 2.0, config.camera.height_px / 2.0]])
-    sink, seen = _Sink(), []
+    sink, seen = _Sink(), list[StepRecord]()
     steps = drive(pipeline, [
         Observation.nothing(1.0, "no frame"),
         Observation(1.5, _pose(config, 1.5), pixels=centre, extra={"height_source": "altitude"}),
