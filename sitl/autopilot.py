@@ -57,6 +57,7 @@ from sitl.vehicle import (
     step,
     wrap_rad,
 )
+from sitl.workers import Workers
 
 FloatArray = NDArray[np.float64]
 
@@ -329,8 +330,8 @@ class MockAutopilot:
         self._odometry_rng = np.random.default_rng(seeds[1])
         self._rangefinder_rng = np.random.default_rng(seeds[2])
         self._lock = threading.RLock()
-        self._thread: threading.Thread | None = None
-        self._stopping = threading.Event()
+        self._workers = Workers()
+        self._stopping = self._workers.stopping
         self._boot = 0
         self._reboot_until_s = -1.0
         self._glitch: tuple[FloatArray, float] = (np.zeros(3), -1.0)
@@ -404,16 +405,11 @@ class MockAutopilot:
 
     def start(self) -> None:
         """Run the loop in a thread."""
-        self._stopping.clear()
-        self._thread = threading.Thread(target=self._loop, name="sitl-autopilot", daemon=True)
-        self._thread.start()
+        self._workers.start(("sitl-autopilot", self._loop))
 
     def stop(self) -> None:
         """Stop the loop and close the link."""
-        self._stopping.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
-            self._thread = None
+        self._workers.stop()
         self.link.close()
 
     def __enter__(self) -> MockAutopilot:

@@ -47,6 +47,7 @@ from sitl.camera import Renderer
 from sitl.faults import CAMERA_FAULTS, FaultPlan
 from sitl.runner import CameraLoop, FrameCounts, Shot, render_scene
 from sitl.stream import MjpegServer
+from sitl.workers import Workers
 from sitl.world import TargetWorld
 
 __all__ = ["ESTIMATE", "HIL_STATE", "SIMSTATE", "SOURCES", "BootClock", "ExternalAutopilot",
@@ -224,8 +225,8 @@ class ExternalAutopilot:
         self._last_request: dict[int, float] = {}  # message id -> time of its last request
         self._next_heartbeat_s = -math.inf
         self._true_alt: tuple[float, float] | None = None  # (receive, alt AMSL) of SIM_STATE
-        self._stopping = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._workers = Workers()
+        self._stopping = self._workers.stopping
         os.environ["MAVLINK20"] = "1"  # mavutil picks the MAVLink 2 dialect by this
         try:
             self._conn: Any = mavutil.mavlink_connection(
@@ -244,18 +245,12 @@ class ExternalAutopilot:
 
     def start(self) -> ExternalAutopilot:
         """Read the link in a thread; returns self."""
-        self._stopping.clear()
-        self._thread = threading.Thread(target=self._loop, name="sitl-external-link",
-                                        daemon=True)
-        self._thread.start()
+        self._workers.start(("sitl-external-link", self._loop))
         return self
 
     def stop(self) -> None:
         """Stop the thread and close the connection. Idempotent."""
-        self._stopping.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
-            self._thread = None
+        self._workers.stop()
         self._conn.close()
 
     # -- the link thread ----------------------------------------------------------------------
@@ -426,8 +421,8 @@ class ExternalSitl:
         self._elapsed_s = 0.0
         self._last_due_s: float | None = None
         self._last_pose_wall_s = -math.inf
-        self._stopping = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._workers = Workers()
+        self._stopping = self._workers.stopping
 
     @property
     def camera_url(self) -> str:
@@ -438,17 +433,12 @@ class ExternalSitl:
         """Serve the camera, read the autopilot, render once its clock is known."""
         self.stream.start()
         self.autopilot.start()
-        self._stopping.clear()
-        self._thread = threading.Thread(target=self._camera, name="sitl-camera", daemon=True)
-        self._thread.start()
+        self._workers.start(("sitl-camera", self._camera))
         return self
 
     def stop(self) -> None:
         """Stop every thread and close every socket. Idempotent."""
-        self._stopping.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
-            self._thread = None
+        self._workers.stop()
         self.autopilot.stop()
         self.stream.stop()
 

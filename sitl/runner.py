@@ -30,6 +30,7 @@ from sitl.link import UdpLink
 from sitl.modes import Behaviour, Flavour
 from sitl.stream import MjpegServer
 from sitl.vehicle import VehicleLimits
+from sitl.workers import Workers
 from sitl.world import TargetWorld, clutter_tags
 
 __all__ = ["CameraLoop", "FrameClock", "FrameCounts", "Shot", "Sitl", "autopilot_config",
@@ -156,8 +157,8 @@ class Sitl:
         self._events: list[FaultEvent] = list(self.faults.events)
         self._applied = 0
         self._lock = threading.Lock()
-        self._stopping = threading.Event()
-        self._threads: list[threading.Thread] = []
+        self._workers = Workers()
+        self._stopping = self._workers.stopping
 
     @property
     def camera_url(self) -> str:
@@ -170,20 +171,12 @@ class Sitl:
         """Serve the camera, boot the autopilot, run the camera and the fault schedule."""
         self.stream.start()
         self.autopilot.start()
-        self._stopping.clear()
-        for name, target in (("sitl-camera", self._camera_loop),
-                             ("sitl-faults", self._fault_loop)):
-            thread = threading.Thread(target=target, name=name, daemon=True)
-            thread.start()
-            self._threads.append(thread)
+        self._workers.start(("sitl-camera", self._camera_loop), ("sitl-faults", self._fault_loop))
         return self
 
     def stop(self) -> None:
         """Stop every thread and close every socket. Idempotent."""
-        self._stopping.set()
-        for thread in self._threads:
-            thread.join(timeout=5.0)
-        self._threads.clear()
+        self._workers.stop()
         self.autopilot.stop()
         self.stream.stop()
 
