@@ -30,6 +30,14 @@ def _check_contract(log: FlightLog) -> None:
     assert np.allclose(np.linalg.norm(log.attitudes[:, 1:], axis=1), 1.0, atol=1e-12)
 
 
+def _written_and_read(path: Path, data: bytes) -> FlightLog:
+    """The flight log read back from data written at path, its contract checked."""
+    path.write_bytes(data)
+    log = read_flight_log(path)
+    _check_contract(log)
+    return log
+
+
 def _same_rotation(q: FloatArray, expected: FloatArray, atol: float) -> None:
     """Rows of q equal expected's, up to the sign of each quaternion (q and -q are one)."""
     sign = np.where(np.sum(q * expected, axis=1) < 0.0, -1.0, 1.0)
@@ -85,9 +93,7 @@ def _tlog_trajectory(n: int, euler: bool = False) -> tuple[Built, FloatArray, Fl
 def test_tlog_poses_of_the_autopilot_come_back(tmp_path: Path) -> None:
     (data, _), positions, attitudes = _tlog_trajectory(40)
     path = tmp_path / "flight.TLOG"
-    path.write_bytes(data)
-    log = read_flight_log(path)
-    _check_contract(log)
+    log = _written_and_read(path, data)
     assert log.format == "tlog" and log.path == path
     np.testing.assert_allclose(log.positions, positions, rtol=0.0, atol=1e-9)
     np.testing.assert_allclose(log.attitudes, attitudes, rtol=0.0, atol=1e-12)
@@ -98,9 +104,7 @@ def test_tlog_poses_of_the_autopilot_come_back(tmp_path: Path) -> None:
 def test_tlog_attitudes_from_euler_angles_without_attitude_quaternion(tmp_path: Path) -> None:
     (data, _), positions, attitudes = _tlog_trajectory(30, euler=True)
     path = tmp_path / "flight.tlog"
-    path.write_bytes(data)
-    log = read_flight_log(path)
-    _check_contract(log)
+    log = _written_and_read(path, data)
     np.testing.assert_allclose(log.positions, positions, atol=1e-9)
     np.testing.assert_allclose(log.attitudes[:, 0], attitudes[:, 0])
     _same_rotation(log.attitudes[:, 1:], attitudes[:, 1:], atol=1e-6)
@@ -180,9 +184,7 @@ def _bin_trajectory(n: int, att_format: str) -> tuple[Built, FloatArray, FloatAr
 def test_bin_poses_come_back_in_degrees_and_metres(tmp_path: Path, att_format: str) -> None:
     (data, _), positions, attitudes = _bin_trajectory(30, att_format)
     path = tmp_path / "00000042.BIN"
-    path.write_bytes(data)
-    log = read_flight_log(path)
-    _check_contract(log)
+    log = _written_and_read(path, data)
     assert log.format == "bin" and log.warnings == []
     np.testing.assert_allclose(log.positions, positions, rtol=0.0, atol=1e-9)
     np.testing.assert_allclose(log.attitudes[:, 0], attitudes[:, 0])
@@ -274,9 +276,7 @@ def _ulog_flight(n: int, with_global: bool) -> tuple[Built, FloatArray, FloatArr
 def test_ulg_global_position_with_height_from_local_position(tmp_path: Path) -> None:
     (data, _), positions, attitudes = _ulog_flight(20, with_global=True)
     path = tmp_path / "log_12.ulg"
-    path.write_bytes(data)
-    log = read_flight_log(path)
-    _check_contract(log)
+    log = _written_and_read(path, data)
     assert log.format == "ulg" and log.warnings == []
     np.testing.assert_allclose(log.positions, positions, rtol=0.0, atol=1e-9)
     np.testing.assert_allclose(log.attitudes, attitudes, rtol=0.0, atol=1e-12)
@@ -285,9 +285,7 @@ def test_ulg_global_position_with_height_from_local_position(tmp_path: Path) -> 
 def test_ulg_local_position_about_its_reference_without_global(tmp_path: Path) -> None:
     (data, _), local, _ = _ulog_flight(20, with_global=False)
     path = tmp_path / "log_13.ULG"
-    path.write_bytes(data)
-    log = read_flight_log(path)
-    _check_contract(log)
+    log = _written_and_read(path, data)
     p = log.positions
     np.testing.assert_allclose(p[:, [0, 3, 4]], local[:, [0, 3, 4]], atol=1e-9)
     # Azimuthal equidistant on PX4's sphere: distance and bearing from the reference are kept.
