@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.errors import ConfigError, ErrorCollector, InputError
-from companion.geo import Utm, utm_zone_for
+from companion.geo import LocalNed, Utm, utm_zone_for
 from companion.keys import (
     REQUIRED,
     Bool,
@@ -42,6 +42,7 @@ from companion.keys import (
     section_table,
     unknown_key,
 )
+from companion.plan.gate import GateLimits
 from companion.plan.planners import PlannerKind
 from companion.sat.params import FILTER_KEYS, FilterSpec, FovKind
 
@@ -340,6 +341,18 @@ def _latlon_polygon(key: str, points: FloatArray) -> FloatArray:
     return points
 
 
+def _geofence_shape(fence_latlon: FloatArray) -> None:
+    """ConfigError naming safety.geofence unless the safety gate accepts its shape (simple,
+    with an area), checked in the local plane at its first vertex."""
+    lat0, lon0 = (float(v) for v in fence_latlon[0])
+    north, east, _ = LocalNed(lat0, lon0, 0.0).geodetic_to_ned(
+        fence_latlon[:, 0], fence_latlon[:, 1], 0.0)
+    try:
+        GateLimits(np.column_stack([north, east]), 1.0, 2.0, 1.0, 1.0)
+    except InputError as exc:
+        raise ConfigError("safety.geofence", exc.reason) from exc
+
+
 def _relative(base: Path | None, path: str) -> str:
     p = Path(path)
     return str(p if p.is_absolute() or base is None else base / p)
@@ -370,7 +383,7 @@ def _safety(safety: dict[str, Any], area: FloatArray | None) -> dict[str, Any]:
         if area is None:  # the search area is wrong: reported as such
             return safety
         safety["geofence_latlon"] = area
-    _latlon_polygon("safety.geofence", safety["geofence_latlon"])
+    _geofence_shape(_latlon_polygon("safety.geofence", safety["geofence_latlon"]))
     low_m, high_m = safety["min_alt_m"], safety["max_alt_m"]
     if low_m >= high_m:
         raise ConfigError("safety.max_alt_m",

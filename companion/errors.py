@@ -75,9 +75,17 @@ class ErrorCollector:
 class InputError(CompanionError):
     """Data handed to the core (measurements, poses, covariances, regions) is unusable.
 
-    `reason` is the message without its subject, for a caller that names the key itself.
+    `reason` is the message without its subject, for a caller that names the key itself;
+    `field`, when given, is the core's own name of the unusable argument.
     """
 
-    def __init__(self, message: str, *, reason: str | None = None) -> None:
+    def __init__(self, message: str, *, reason: str | None = None,
+                 field: str | None = None) -> None:
         super().__init__(message)
         self.reason = message if reason is None else reason
+        self.field = field
+
+
+def field_error(field: str, reason: str) -> InputError:
+    """An InputError about one named argument of the core: "<field> <reason>"."""
+    return InputError(f"{field} {reason}", reason=reason, field=field)

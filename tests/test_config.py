@@ -124,3 +124,12 @@ def test_every_error_is_reported_within_and_across_tables() -> None:
     assert keys == ["nonsense", "pose.vertical_std_m", "pose.max_gap_s", "safety.max_alt_m"]
     assert str(info.value).splitlines() == [str(e) for e in info.value.errors]
     assert str(info.value).startswith(f"{info.value.key}: {info.value.problem}")
+
+
+def test_a_geofence_the_gate_refuses_is_named_by_its_key() -> None:
+    """The gate's own reason (a symmetric bow tie has no signed area), under the config's key."""
+    bow_tie = [AREA[0], AREA[2], AREA[1], AREA[3]]
+    with pytest.raises(ConfigError) as info:
+        parse_config(_minimal(safety={"geofence": bow_tie}))
+    assert info.value.key == "safety.geofence"
+    assert str(info.value) == "safety.geofence: has no area (all vertices on a line)"

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from companion.errors import ConfigError
+from companion.errors import InputError
 from companion.plan.gate import (
     GateAction,
     GateLimits,
@@ -41,28 +41,28 @@ def far(result: GateResult) -> Setpoint:
 
 
 @pytest.mark.parametrize(
-    ("fence", "kw", "key"),
+    ("fence", "kw", "field"),
     [
-        ([[0, 0], [1, 0]], {}, "safety.geofence"),
-        ([[0, 0], [1, 0], [2, 0]], {}, "safety.geofence"),  # no area
-        ([[0, 0], [1, 1], [1, 0], [0, 1]], {}, "safety.geofence"),  # bow tie
-        ([[0, 0], [1, 0], [1, 1], [1, 1], [0, 1]], {}, "safety.geofence"),  # repeated vertex
-        ([[0, 0], [2, 0], [1, 0], [1, 1]], {}, "safety.geofence"),  # folds back
-        ([[0, 0], [4, 0], [4, 4], [2, 0], [0, 4]], {}, "safety.geofence"),  # vertex on an edge
-        ([[0, 0], [1, math.nan], [1, 1]], {}, "safety.geofence"),
-        ([[0, 0], [1], [1, 1]], {}, "safety.geofence"),  # ragged
-        (SQUARE, {"min_alt_m": 0.0}, "safety.min_alt_m"),
-        (SQUARE, {"max_alt_m": 2.0}, "safety.max_alt_m"),
-        (SQUARE, {"max_alt_m": math.inf}, "safety.max_alt_m"),
-        (SQUARE, {"max_speed_h_m_s": 0.0}, "safety.max_speed_h_m_s"),
-        (SQUARE, {"max_speed_v_m_s": -1.0}, "safety.max_speed_v_m_s"),
-        (SQUARE, {"fence_margin_m": 0.0}, "safety.fence_margin_m"),
+        ([[0, 0], [1, 0]], {}, "fence_ne_m"),
+        ([[0, 0], [1, 0], [2, 0]], {}, "fence_ne_m"),  # no area
+        ([[0, 0], [1, 1], [1, 0], [0, 1]], {}, "fence_ne_m"),  # bow tie
+        ([[0, 0], [1, 0], [1, 1], [1, 1], [0, 1]], {}, "fence_ne_m"),  # repeated vertex
+        ([[0, 0], [2, 0], [1, 0], [1, 1]], {}, "fence_ne_m"),  # folds back
+        ([[0, 0], [4, 0], [4, 4], [2, 0], [0, 4]], {}, "fence_ne_m"),  # vertex on an edge
+        ([[0, 0], [1, math.nan], [1, 1]], {}, "fence_ne_m"),
+        ([[0, 0], [1], [1, 1]], {}, "fence_ne_m"),  # ragged
+        (SQUARE, {"min_alt_m": 0.0}, "min_alt_m"),
+        (SQUARE, {"max_alt_m": 2.0}, "max_alt_m"),
+        (SQUARE, {"max_alt_m": math.inf}, "max_alt_m"),
+        (SQUARE, {"max_speed_h_m_s": 0.0}, "max_speed_h_m_s"),
+        (SQUARE, {"max_speed_v_m_s": -1.0}, "max_speed_v_m_s"),
+        (SQUARE, {"fence_margin_m": 0.0}, "fence_margin_m"),
     ],
 )
-def test_bad_limits_name_the_key(fence: object, kw: dict[str, float], key: str) -> None:
-    with pytest.raises(ConfigError) as err:
+def test_bad_limits_name_the_field(fence: object, kw: dict[str, float], field: str) -> None:
+    with pytest.raises(InputError) as err:
         limits(fence, **kw)
-    assert err.value.key == key
+    assert err.value.field == field and str(err.value).startswith(f"{field} ")
 
 
 def test_closed_ring_and_point_in_non_convex_polygon() -> None:
@@ -175,7 +175,7 @@ def star_polygons(draw: st.DrawFn, convex: bool = False) -> GateLimits:
     try:
         return limits(fence, max_speed_h_m_s=draw(st.floats(0.5, 20.0)),
                       max_speed_v_m_s=draw(st.floats(0.2, 5.0)))
-    except ConfigError:
+    except InputError:
         assume(False)
         raise
 

@@ -15,7 +15,7 @@ from enum import StrEnum
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from companion.errors import ConfigError, InputError
+from companion.errors import InputError, field_error
 
 FloatArray = NDArray[np.float64]
 
@@ -51,10 +51,10 @@ class GateResult:
     reasons: tuple[str, ...]
 
 
-def _positive(key: str, value: object) -> float:
+def _positive(field: str, value: object) -> float:
     number = float(value) if isinstance(value, int | float | np.number) else math.nan
     if isinstance(value, bool) or not (math.isfinite(number) and number > 0):
-        raise ConfigError(key, f"must be a finite number > 0, got {value!r}")
+        raise field_error(field, f"must be a finite number > 0, got {value!r}")
     return number
 
 
@@ -74,27 +74,27 @@ class GateLimits:
         try:
             fence = np.array(self.fence_ne_m, dtype=np.float64)
         except (TypeError, ValueError) as exc:
-            raise ConfigError("safety.geofence", f"not an array of [north, east]: {exc}") from exc
+            raise field_error("fence_ne_m", f"is not an array of [north, east]: {exc}") from exc
         if fence.ndim == 2 and len(fence) > 3 and np.array_equal(fence[0], fence[-1]):
             fence = fence[:-1]
         if fence.ndim != 2 or fence.shape[1] != 2 or len(fence) < 3:
-            raise ConfigError("safety.geofence", f"needs >= 3 [north, east] vertices, got shape "
-                                                 f"{fence.shape}")
+            raise field_error("fence_ne_m", f"needs >= 3 [north, east] vertices, got shape "
+                                            f"{fence.shape}")
         if not np.all(np.isfinite(fence)):
-            raise ConfigError("safety.geofence", "has non-finite coordinates")
+            raise field_error("fence_ne_m", "has non-finite coordinates")
         problem = _polygon_problem(fence)
         if problem:
-            raise ConfigError("safety.geofence", problem)
+            raise field_error("fence_ne_m", problem)
         fence.flags.writeable = False
         object.__setattr__(self, "fence_ne_m", fence)
-        low = _positive("safety.min_alt_m", self.min_alt_m)
-        if _positive("safety.max_alt_m", self.max_alt_m) <= low:
-            raise ConfigError("safety.max_alt_m", f"must be above safety.min_alt_m ({low!r}), "
-                                                  f"got {self.max_alt_m!r}")
-        _positive("safety.max_speed_h_m_s", self.max_speed_h_m_s)
-        _positive("safety.max_speed_v_m_s", self.max_speed_v_m_s)
-        if _positive("safety.fence_margin_m", self.fence_margin_m) < _MIN_MARGIN_M:
-            raise ConfigError("safety.fence_margin_m", f"must be >= {_MIN_MARGIN_M} m")
+        low = _positive("min_alt_m", self.min_alt_m)
+        if _positive("max_alt_m", self.max_alt_m) <= low:
+            raise field_error("max_alt_m", f"must be above min_alt_m ({low!r}), "
+                                           f"got {self.max_alt_m!r}")
+        _positive("max_speed_h_m_s", self.max_speed_h_m_s)
+        _positive("max_speed_v_m_s", self.max_speed_v_m_s)
+        if _positive("fence_margin_m", self.fence_margin_m) < _MIN_MARGIN_M:
+            raise field_error("fence_margin_m", f"must be >= {_MIN_MARGIN_M} m")
 
 
 # ---------------------------------------------------------------------------------------------
