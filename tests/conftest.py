@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -25,3 +26,12 @@ def client() -> Iterator[Client]:
     c = Client()
     yield c
     c.close()
+
+
+@pytest.fixture
+def no_thread_left() -> Iterator[None]:
+    """Fail if the test leaves a thread running."""
+    before = set(threading.enumerate())
+    yield
+    left = [t for t in threading.enumerate() if t not in before and t.is_alive()]
+    assert not left, f"threads left running: {left}"

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import itertools
 import threading
-from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -35,15 +34,6 @@ def _image(i: int) -> ImageU8:
 
 def _close(a: ImageU8, b: ImageU8) -> bool:
     return bool(np.mean(np.abs(a.astype(np.int16) - b.astype(np.int16))) < 4.0)
-
-
-@pytest.fixture
-def no_thread_left() -> Iterator[None]:
-    """Fail if the test leaves a thread running."""
-    before = set(threading.enumerate())
-    yield
-    left = [t for t in threading.enumerate() if t not in before and t.is_alive()]
-    assert not left, f"threads left running: {left}"
 
 
 class _Counting:

@@ -7,7 +7,6 @@ import threading
 import time
 import urllib.error
 import urllib.request
-from collections.abc import Iterator
 
 import cv2
 import numpy as np
@@ -29,15 +28,6 @@ def frames() -> list[ImageU8]:
     tags = [Tag(1, 0.0, 0.0, 0.5), Tag(2, 2.0, 1.0, 0.5)]
     return [renderer.render(BodyPose.from_euler(0.1 * i, 0.0, 0.3 * i, -8.0), tags,
                             np.random.default_rng(i)) for i in range(5)]
-
-
-@pytest.fixture
-def no_thread_left() -> Iterator[None]:
-    """Fail if the test leaves a thread running."""
-    before = set(threading.enumerate())
-    yield
-    left = [t for t in threading.enumerate() if t not in before and t.is_alive()]
-    assert not left, f"threads left running: {left}"
 
 
 def _mean_abs_diff(a: NDArray[np.generic] | None, b: ImageU8) -> float:
