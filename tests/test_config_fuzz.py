@@ -312,17 +312,23 @@ def test_an_unknown_key_is_named(
     assert "unknown key" in info.value.problem
 
 
+def _refused_at(make: Callable[[], dict[str, Any]], parse: Parse, section: str, value: object,
+                problem: str) -> None:
+    """A document whose `section` is `value` is refused, naming the section and the problem."""
+    data = make()
+    data[section] = value
+    with pytest.raises(ConfigError) as info:
+        parse(data)
+    assert info.value.key == section and problem in info.value.problem
+
+
 @pytest.mark.parametrize(("make", "parse"), [(d[1], d[2]) for d in DOCUMENTS],
                          ids=[d[0] for d in DOCUMENTS])
 @pytest.mark.parametrize("section", ["no_such_section", "Camera", "filters", "1"])
 def test_an_unknown_section_is_named(
     make: Callable[[], dict[str, Any]], parse: Parse, section: str
 ) -> None:
-    data = make()
-    data[section] = {"x": 1}
-    with pytest.raises(ConfigError) as info:
-        parse(data)
-    assert info.value.key == section and "unknown key" in info.value.problem
+    _refused_at(make, parse, section, {"x": 1}, "unknown key")
 
 
 def _sections() -> Iterator[Any]:
@@ -337,11 +343,7 @@ def _sections() -> Iterator[Any]:
 def test_a_section_that_is_not_a_table_is_named(
     make: Callable[[], dict[str, Any]], parse: Parse, section: str, value: object
 ) -> None:
-    data = make()
-    data[section] = value
-    with pytest.raises(ConfigError) as info:
-        parse(data)
-    assert info.value.key == section and "must be a table" in info.value.problem
+    _refused_at(make, parse, section, value, "must be a table")
 
 
 def _required() -> Iterator[Any]:
