@@ -5,10 +5,13 @@ clock: a frame with the pose at its capture time, or the detected tag centres (p
 pose (what a replay of recorded detections has), or a reason there is nothing to see (blind).
 The live service, the replays and the benchmarks all make observations; `observe` steps the
 pipeline on one, and `drive` steps it over many, writing each step's record to a run folder.
+`frame_observation` gives a frame the pose a `VehicleView` has for its capture time, live and in
+the replay of a flight log alike.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -16,11 +19,14 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.config import PoseConfig
 from companion.errors import InputError
 from companion.pipeline import Pipeline, StepRecord
+from companion.plan.setpoints import tilt_cos
+from companion.vehicle.view import Accuracy, VehicleView
 from companion.vision.projection import GeoPose, PoseUncertainty
 
-__all__ = ["Observation", "StepSink", "drive", "observe"]
+__all__ = ["Observation", "StepSink", "drive", "frame_observation", "observe", "pose_sigma"]
 
 FloatArray = NDArray[np.float64]
 
@@ -41,6 +47,35 @@ class Observation:
     def nothing(t_s: float, reason: str) -> Observation:
         """A blind step: nothing to see at t_s, for the reason given."""
         return Observation(t_s, blind=reason)
+
+
+def pose_sigma(floors: PoseConfig, reported: Accuracy) -> PoseUncertainty:
+    """The pose uncertainty a measurement carries: the autopilot's own figures where it gives
+    them, never below the configured floors."""
+    def at_least(floor: float, value: float) -> float:
+        return floor if math.isnan(value) else max(floor, value)
+
+    return PoseUncertainty(at_least(floors.horizontal_std_m, reported.horizontal_std_m),
+                           at_least(floors.vertical_std_m, reported.vertical_std_m),
+                           at_least(floors.attitude_std_deg, reported.attitude_std_deg),
+                           at_least(floors.heading_std_deg, reported.heading_std_deg))
+
+
+def frame_observation(view: VehicleView, capture_s: float, image: NDArray[np.uint8],
+                      pose: PoseConfig) -> Observation:
+    """A frame taken at capture_s with the view's pose then (the height from its best source,
+    the autopilot's accuracy), or blind when the view has no plausible pose for that time."""
+    sample = view.poses.at(capture_s)
+    if sample is None:
+        glitch = view.gate.refusing_since_s is not None
+        return Observation.nothing(capture_s, "implausible position (GPS glitch?)" if glitch
+                                   else "no pose at the capture time")
+    height_m, height_source = view.height_at(capture_s, sample.alt_rel_m,
+                                             tilt_cos(sample.q_wxyz), pose.camera_rest_height_m)
+    geo = GeoPose(capture_s, sample.lat_deg, sample.lon_deg, sample.alt_amsl_m, height_m,
+                  sample.q_wxyz)
+    return Observation(capture_s, geo, image, sigma=pose_sigma(pose, view.accuracy()),
+                       extra={"height_source": height_source})
 
 
 class StepSink(Protocol):

@@ -31,15 +31,14 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.config import ServiceConfig, parse_config
-from companion.drive import Observation, drive
+from companion.config import ServiceConfig
+from companion.drive import Observation, drive, frame_observation
 from companion.errors import InputError
 from companion.flightlog import FlightLog, read_flight_log
 from companion.metrics import mahalanobis_to_tracks
 from companion.pipeline import Pipeline, StepRecord, camera_model
-from companion.plan.setpoints import tilt_cos
 from companion.report import Score, TrackRecord, confirmed_tracks, score
-from companion.run_folder import RunFolder, read_records
+from companion.run_folder import RunFolder, read_camera, read_config, read_records
 from companion.vehicle.plausibility import PositionGate
 from companion.vehicle.view import VehicleView
 from companion.vision.camera import CameraModel
@@ -95,15 +94,6 @@ def load_truth(path: Path) -> FloatArray:
     if not np.all(np.isfinite(truth)) or np.any(np.abs(truth[:, 0]) > 90.0):
         raise InputError(f"{path}: positions must be finite [lat, lon] in degrees")
     return truth
-
-
-def _camera(path: Path) -> CameraModel:
-    try:
-        fields: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v
-                                  for k, v in json.loads(path.read_text()).items()}
-        return CameraModel(**fields)
-    except (OSError, ValueError, TypeError) as exc:
-        raise InputError(f"{path}: not a camera model written by the service: {exc}") from exc
 
 
 class _Replay:
@@ -183,8 +173,8 @@ def replay_run(run_dir: Path, out_dir: Path, config: ServiceConfig | None = None
     if not (run_dir / "steps.jsonl").is_file():
         raise InputError(f"{run_dir}: not a run folder of the service (no steps.jsonl)")
     if config is None:
-        config = parse_config(json.loads((run_dir / "config.json").read_text()))
-    replay = _Replay(config, _camera(run_dir / "camera.json"), out_dir, truth_latlon)
+        config = read_config(run_dir)
+    replay = _Replay(config, read_camera(run_dir), out_dir, truth_latlon)
     inputs = [(r["input"], r.get("blind")) for r in read_records(run_dir / "steps.jsonl",
                                                                   replay.warnings) if "input" in r]
     missing = 0
@@ -369,18 +359,10 @@ class _LogTelemetry:
 
     def observation(self, t_s: float, image: NDArray[np.uint8]) -> Observation:
         """The frame taken at t_s with the pose the live service would give it, or blind."""
-        pose_config = self.config.pose
-        self._feed_until(t_s + pose_config.max_gap_s)  # the samples that bracket t_s
-        sample = self.view.poses.at(t_s)
-        if sample is None:
-            glitch = self.view.gate.refusing_since_s is not None
-            return Observation.nothing(t_s, "implausible position (GPS glitch?)" if glitch
-                                       else "no pose at the capture time")
-        height_m, _ = self.view.height_at(t_s, sample.alt_rel_m, tilt_cos(sample.q_wxyz),
-                                          pose_config.camera_rest_height_m)
-        pose = GeoPose(t_s, sample.lat_deg, sample.lon_deg, sample.alt_amsl_m, height_m,
-                       sample.q_wxyz)
-        return Observation(t_s, pose, np.asarray(image, dtype=np.uint8))
+        self._feed_until(t_s + self.config.pose.max_gap_s)  # the samples that bracket t_s
+        obs = frame_observation(self.view, t_s, np.asarray(image, dtype=np.uint8),
+                                self.config.pose)
+        return dataclasses.replace(obs, extra={})  # a log replay's steps keep their keys
 
 
 def replay_log(log_path: Path, frames_path: Path, out_dir: Path, config: ServiceConfig,

@@ -6,27 +6,34 @@ line in `steps.jsonl`, every event of a live run one in `events.jsonl`, each flu
 written (a crash loses at most the last line). At the end: the confirmed tracks as
 `tracks.geojson` and `tracks.csv`, the flight plots, and `summary.json`.
 
+A live run also keeps what a replay needs besides its steps: `config.json`, `camera.json`
+(and `version.txt`); `read_config` and `read_camera` read them back.
+
 `read_records` reads the JSON lines back; a torn last line (a crash mid-write) ends them with a
 warning, any other bad line is an error. The format is that of every earlier version.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Callable, Iterator
 from datetime import datetime
+from importlib.metadata import version
 from pathlib import Path
 from typing import Any, Literal, TextIO
 
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.config import ServiceConfig, parse_config
 from companion.errors import CompanionError, InputError
 from companion.report import TrackRecord, write_csv, write_geojson
 from companion.run_plots import plot_flight, plot_mahalanobis
+from companion.vision.camera import CameraModel
 
-__all__ = ["EVENTS", "STEPS", "JsonLines", "RunFolder", "new_run_dir", "read_records",
-           "read_steps"]
+__all__ = ["EVENTS", "STEPS", "JsonLines", "RunFolder", "new_run_dir", "read_camera",
+           "read_config", "read_records", "read_steps"]
 
 FloatArray = NDArray[np.float64]
 STEPS = "steps.jsonl"
@@ -80,6 +87,22 @@ def read_steps(run_dir: Path, warnings: list[str] | None = None) -> list[dict[st
     return list(read_records(run_dir / STEPS, [] if warnings is None else warnings))
 
 
+def read_config(run_dir: Path) -> ServiceConfig:
+    """The configuration a run flew with."""
+    return parse_config(json.loads((run_dir / "config.json").read_text()))
+
+
+def read_camera(run_dir: Path) -> CameraModel:
+    """The camera model a run flew with."""
+    path = run_dir / "camera.json"
+    try:
+        fields: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v
+                                  for k, v in json.loads(path.read_text()).items()}
+        return CameraModel(**fields)
+    except (OSError, ValueError, TypeError) as exc:
+        raise InputError(f"{path}: not a camera model written by the service: {exc}") from exc
+
+
 class RunFolder:
     """One run's folder: its steps (and events) as they happen, its reports at the end."""
 
@@ -93,6 +116,13 @@ class RunFolder:
     def create(root: Path, now: datetime) -> RunFolder:
         """A live run's new timestamped folder under root, with its events log."""
         return RunFolder(new_run_dir(root, now), events=True)
+
+    def write_snapshot(self, config: ServiceConfig, camera: CameraModel) -> None:
+        """What a replay needs besides the steps: the configuration and the camera model."""
+        (self.path / "config.json").write_text(json.dumps(config.data, indent=1))
+        fields = {f.name: getattr(camera, f.name) for f in dataclasses.fields(camera)}
+        (self.path / "camera.json").write_text(json.dumps(fields, indent=1))
+        (self.path / "version.txt").write_text(f"companion {version('companion')}\n")
 
     def write_step(self, record: dict[str, Any]) -> None:
         """One step's JSON record."""

@@ -21,13 +21,11 @@ import asyncio
 import contextlib
 import dataclasses
 import gc
-import json
 import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
-from importlib.metadata import version
 from pathlib import Path
 from typing import Any
 
@@ -36,8 +34,8 @@ from numpy.typing import NDArray
 
 from companion import mission as ms
 from companion.camera.source import Frame, LatestFrameGrabber, open_source
-from companion.config import PoseConfig, ServiceConfig
-from companion.drive import Observation, observe
+from companion.config import ServiceConfig
+from companion.drive import Observation, frame_observation, observe, pose_sigma
 from companion.errors import CompanionError
 from companion.notify import Notifier
 from companion.pipeline import Pipeline, StepRecord, camera_model
@@ -48,7 +46,6 @@ from companion.plan.setpoints import (
     gate_limits,
     hold_setpoint,
     search_setpoint,
-    tilt_cos,
     vehicle_xy,
 )
 from companion.record.checkpoint import latest_checkpoint, save_checkpoint
@@ -61,13 +58,11 @@ from companion.vehicle.events import UNKNOWN_PREFIX
 from companion.vehicle.mavsdk_link import MavsdkLink, VehicleError
 from companion.vehicle.modes import mission_mode
 from companion.vehicle.plausibility import PositionGate
-from companion.vehicle.pose_buffer import GeoPoseSample
 from companion.vehicle.signing import SigningRelay, load_signing_key
-from companion.vehicle.view import Accuracy, VehicleView
+from companion.vehicle.view import VehicleView
 from companion.vision.camera import CameraModel
-from companion.vision.projection import GeoPose, PoseUncertainty
 
-__all__ = ["RunResult", "Service", "camera_model"]
+__all__ = ["RunResult", "Service", "camera_model", "pose_sigma"]
 
 FloatArray = NDArray[np.float64]
 TELEMETRY_STALE_S = 0.8  # no telemetry (20 attitudes a second) for this long: the link is down
@@ -98,18 +93,6 @@ async def _set_when(stop: asyncio.Event, wake: asyncio.Event) -> None:
     """Set `wake` once `stop` is set, so a waiting control loop ends at once."""
     await stop.wait()
     wake.set()
-
-
-def pose_sigma(floors: PoseConfig, reported: Accuracy) -> PoseUncertainty:
-    """The pose uncertainty a measurement carries: the autopilot's own figures where it gives
-    them, never below the configured floors."""
-    def at_least(floor: float, value: float) -> float:
-        return floor if math.isnan(value) else max(floor, value)
-
-    return PoseUncertainty(at_least(floors.horizontal_std_m, reported.horizontal_std_m),
-                           at_least(floors.vertical_std_m, reported.vertical_std_m),
-                           at_least(floors.attitude_std_deg, reported.attitude_std_deg),
-                           at_least(floors.heading_std_deg, reported.heading_std_deg))
 
 
 class Service:
@@ -183,7 +166,7 @@ class Service:
                 out / "frames", budget_bytes=int(o.frames_budget_mb * 1e6),
                 min_free_bytes=int(o.min_free_mb * 1e6), image_format=o.frames,
                 jpeg_quality=o.jpeg_quality, log=self._log)
-        self._snapshot(out)
+        folder.write_snapshot(self.config, self.camera)
         # What exists now (modules, libraries, the configuration) lives as long as the flight:
         # the garbage collector need not scan it again, which keeps its pauses short.
         gc.collect()
@@ -256,13 +239,6 @@ class Service:
             self.counters["frame_errors"] = grabber.errors
             self.counters["frames_corrupt"] = getattr(source, "corrupt_frames", 0)
             self.counters.update({f"rejected_{k}": v for k, v in self.view.rejected.items()})
-
-    def _snapshot(self, out: Path) -> None:
-        """What replay needs besides the steps: the configuration and the camera model."""
-        (out / "config.json").write_text(json.dumps(self.config.data, indent=1))
-        camera = {f.name: getattr(self.camera, f.name) for f in dataclasses.fields(self.camera)}
-        (out / "camera.json").write_text(json.dumps(camera, indent=1))
-        (out / "version.txt").write_text(f"companion {version('companion')}\n")
 
     def _resume(self, out: Path) -> None:
         """Find the checkpoint of a run that stopped a short while ago (a restart?)."""
@@ -373,21 +349,11 @@ class Service:
         if capture_s is None:  # a camera that knows no boot time: map its receive time
             capture_s = (frame.receive_time_s + (boot_now_s - self.clock())
                          - self.config.camera.latency_s)
-        sample = await self._pose_at(capture_s)
-        if sample is None:
-            glitch = self.view.gate.refusing_since_s is not None
-            return observe(self.pipeline, Observation.nothing(
-                capture_s, "implausible position (GPS glitch?)" if glitch
-                else "no pose at the capture time"))
-        height_m, height_source = self.view.height_at(
-            capture_s, sample.alt_rel_m, tilt_cos(sample.q_wxyz),
-            self.config.pose.camera_rest_height_m)
-        pose = GeoPose(capture_s, sample.lat_deg, sample.lon_deg, sample.alt_amsl_m, height_m,
-                       sample.q_wxyz)
-        sigma = pose_sigma(self.config.pose, self.view.accuracy())
+        await self._wait_for_pose(capture_s)
+        obs = frame_observation(self.view, capture_s, frame.image, self.config.pose)
+        if obs.blind is not None:
+            return observe(self.pipeline, obs)
         started = time.perf_counter()
-        obs = Observation(capture_s, pose, frame.image, sigma=sigma,
-                          extra={"height_source": height_source})
         record = await loop.run_in_executor(None, observe, self.pipeline, obs)
         self.counters["frames_used"] += record.blind is None
         record.extra["latency_ms"] = round(1e3 * (self.clock() - frame.receive_time_s), 2)
@@ -398,16 +364,15 @@ class Service:
                 record.extra["input"]["frame"] = kept
         return record
 
-    async def _pose_at(self, capture_s: float) -> GeoPoseSample | None:
-        """The pose at a frame's capture time, waiting up to POSE_WAIT_S for telemetry that has
-        not arrived yet (a slow link delivers it after the frame)."""
+    async def _wait_for_pose(self, capture_s: float) -> None:
+        """Wait up to POSE_WAIT_S for the telemetry of a frame's capture time, which a slow
+        link delivers after the frame."""
         deadline_s = self.clock() + POSE_WAIT_S
         while True:
-            sample = self.view.poses.at(capture_s)
             latest_s = self.view.latest_boot_s
-            if (sample is not None or latest_s is None or latest_s >= capture_s
-                    or self.clock() >= deadline_s):
-                return sample
+            if (self.view.poses.at(capture_s) is not None or latest_s is None
+                    or latest_s >= capture_s or self.clock() >= deadline_s):
+                return
             await asyncio.sleep(POSE_POLL_S / self.time_scale)
 
     # -- control -----------------------------------------------------------------------------
