@@ -9,6 +9,8 @@ parameters after the flight. Where the run kept its frames, detection runs again
 `replay_log(log, frames, out_dir, config, times)` pairs the poses of a flight log (.tlog, .bin,
 .ulg; see `companion.flightlog`) with the frames of a video or an image folder, each frame at
 its time on the autopilot's boot clock, and steps the pipeline at the configured estimator rate.
+The log's poses reach the frames through a `VehicleView` and its position gate, as live telemetry
+does: a GPS glitch in the log blinds the frames taken during it, as it did in flight.
 
 Both write the live run's reports (steps.jsonl, tracks.geojson/csv, summary.json, plots), and
 with true positions the error table and the Mahalanobis distance of each target to its closest

@@ -12,7 +12,9 @@ tasks then run until the mission is over (landed, or `stop` set):
 
 Every estimator step is a JSON line in `steps.jsonl`, and every state change, command, refusal
 and gate action is one in `events.jsonl`. At the end the confirmed tracks are written as GeoJSON
-and CSV with `summary.json`.
+and CSV with `summary.json` (the run folder: `companion.run_folder`). Each step's input is an
+`Observation` stepped by `companion.drive`, as in replay; the setpoint geometry is
+`companion.plan.setpoints`.
 """
 
 from __future__ import annotations
