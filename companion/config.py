@@ -482,7 +482,8 @@ def schema_markdown() -> str:
         "",
         "One TOML file configures `companion run` (`companion check-config FILE` checks it).",
         "Every key is optional unless its default says required; an unknown key, a wrong type or",
-        "an out-of-range value stops the start with a message naming the key (exit status 2).",
+        "an out-of-range value stops the start with a message naming the key (exit status 2);",
+        "every such error of the file is listed at once, one `key: reason` line each.",
         "Examples: `systemd/companion.toml` (a real vehicle), `sitl/service.toml` (the SITL).",
         "The `[filter]` table has the same keys as a scenario's (`docs/scenario.md`).",
     ]

@@ -117,6 +117,8 @@ class Float(Kind[float]):
         self.gt, self.ge, self.le = gt, ge, le
         if ge is not None and le is not None:
             self.range = f"in [{ge}, {le}]"
+        elif gt is not None and le is not None:
+            self.range = f"in ({gt}, {le}]"
         elif gt is not None:
             self.range = f"> {gt}"
         elif ge is not None:

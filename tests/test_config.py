@@ -57,7 +57,7 @@ def test_defaults_and_derived_values() -> None:
     ({"search": {"altitude_m": 50.0}}, "search.altitude_m: must lie in the safety band"),
     ({"safety": {"min_alt_m": 40.0}}, "safety.max_alt_m: must be above safety.min_alt_m"),
     ({"mission": {"end": "targets"}}, "search.expected_targets: is required when mission.end"),
-    ({"mission": {"setpoint_rate_hz": 2.0}}, "mission.setpoint_rate_hz: must be > 2"),
+    ({"mission": {"setpoint_rate_hz": 2.0}}, "mission.setpoint_rate_hz: must be in (2, 50]"),
     ({"filter": {"gp_window": 0}}, "filter.gp_window: must be >= "),
     ({"estimator": {"rate_hz": "fast"}}, "estimator.rate_hz: must be a number"),
 ])
