@@ -6,6 +6,7 @@ from __future__ import annotations
 import datetime
 import itertools
 import math
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -168,12 +169,22 @@ def _random_sets(seed: int) -> list[tuple[FloatArray, FloatArray]]:
     return cases
 
 
+_Case = tuple[Any, FloatArray, FloatArray, list[Any], list[Any]]
+
+
+def _reference_cases(p: float, c: float, seed: int) -> Iterator[_Case]:
+    """(reference metric, est, truth, its tracks, its truths) for each random pair of sets;
+    skips the test when the reference is not installed."""
+    ospametric = pytest.importorskip("stonesoup.metricgenerator.ospametric")
+    metric = ospametric.OSPAMetric(p=p, c=c)
+    for est, truth in _random_sets(seed=seed):
+        tracks, truths = _stonesoup_states(est, truth)
+        yield metric, est, truth, tracks, truths
+
+
 @pytest.mark.parametrize("c", [10.0, 100.0])
 def test_ospa_matches_stonesoup_ospa_metric_p1(c: float) -> None:
-    ospametric = pytest.importorskip("stonesoup.metricgenerator.ospametric")
-    metric = ospametric.OSPAMetric(p=1, c=c)
-    for est, truth in _random_sets(seed=11):
-        tracks, truths = _stonesoup_states(est, truth)
+    for metric, est, truth, tracks, truths in _reference_cases(1, c, seed=11):
         expected = metric.compute_OSPA_distance(tracks, truths).value
         assert ospa(est, truth, p=1, c=c) == pytest.approx(expected, abs=1e-9)
 
@@ -184,10 +195,7 @@ def test_ospa_matches_stonesoup_gospa_alpha2(p: float, c: float) -> None:
     # Stone Soup's GOSPA (alpha = 2) solves the assignment on min(d, c)^p, and
     # GOSPA^p = min_pi sum min(d, c)^p + (c^p / 2)(n - m), so
     # OSPA = ((GOSPA^p + (c^p / 2)(n - m)) / n)^(1/p) with n >= m the set sizes.
-    ospametric = pytest.importorskip("stonesoup.metricgenerator.ospametric")
-    metric = ospametric.OSPAMetric(p=p, c=c)
-    for est, truth in _random_sets(seed=12):
-        tracks, truths = _stonesoup_states(est, truth)
+    for metric, est, truth, tracks, truths in _reference_cases(p, c, seed=12):
         gospa = metric.compute_gospa_metric(tracks, truths)[0].value["distance"]
         n, m = max(len(est), len(truth)), min(len(est), len(truth))
         expected = ((gospa**p + c**p / 2.0 * (n - m)) / n) ** (1.0 / p)
@@ -198,10 +206,7 @@ def test_ospa_matches_stonesoup_gospa_alpha2(p: float, c: float) -> None:
 def test_ospa_never_exceeds_stonesoup_ospa_distance_p2(c: float) -> None:
     # Stone Soup 1.9.1's compute_OSPA_distance assigns on min(d, c) rather than min(d, c)^p,
     # so for p > 1 it can return more than the optimum; ours is the optimum, never above it.
-    ospametric = pytest.importorskip("stonesoup.metricgenerator.ospametric")
-    metric = ospametric.OSPAMetric(p=2, c=c)
-    for est, truth in _random_sets(seed=13):
-        tracks, truths = _stonesoup_states(est, truth)
+    for metric, est, truth, tracks, truths in _reference_cases(2, c, seed=13):
         upper = metric.compute_OSPA_distance(tracks, truths).value
         assert ospa(est, truth, p=2, c=c) <= upper + 1e-9
 
