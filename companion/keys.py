@@ -380,6 +380,12 @@ def section_table(data: Mapping[Any, Any], section: str) -> Mapping[Any, Any]:
     return table
 
 
+def dump_table(spec: object, keys: Sequence[Key]) -> dict[str, Any]:
+    """The stored keys' values as plain TOML data; a None (a derived default) is left out."""
+    return {k.leaf: k.kind.dump(getattr(spec, k.field)) for k in keys
+            if k.stored and getattr(spec, k.field) is not None}
+
+
 def markdown_rows(prefix: str, keys: Sequence[Key]) -> list[str]:
     lines = ["| key | type | default | meaning |", "|---|---|---|---|"]
     for k in keys:

@@ -49,6 +49,7 @@ from companion.keys import (
     load_toml,
 )
 from companion.sim import scenario as sc
+from companion.sim import scenario_keys as sk
 
 ROOT = Path(__file__).resolve().parent.parent
 SITL_CONFIG = ROOT / "sitl" / "service.toml"
@@ -188,7 +189,7 @@ def bad_values(kind: Kind[Any]) -> list[BadValue]:
                 ("zero", [[0.0, 0.0], [0.0, 0.0]]),
                 *((f"[0]{what}", [row, [0.0, 1.0]])
                   for what, row in _element_bad([Float(), Float()]))]
-    if isinstance(kind, sc._Components):
+    if isinstance(kind, sk.Components):
         return [*_NOT_AN_ARRAY, ("array of numbers", [1.0]), ("array of strings", ["x"]),
                 ("array of arrays", [[1.0, 2.0]])]
     return _scalar_bad(kind)
@@ -234,7 +235,7 @@ DOCUMENTS: list[tuple[str, Callable[[], dict[str, Any]], Parse, list[tuple[str, 
 DOCUMENTS = [
     ("config", _sitl_config, _parse_config, list(SECTIONS.items())),
     ("scenario", _scenario, _parse_scenario,
-     [("", sc._TOP), *sc._SECTIONS.items(), ("belief.components[0]", sc._COMPONENT_KEYS)]),
+     [("", sk.TOP_KEYS), *sk.SECTION_KEYS.items(), ("belief.components[0]", sk.COMPONENT_KEYS)]),
 ]
 
 

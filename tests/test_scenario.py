@@ -23,6 +23,7 @@ from companion.plan.planners import PlannerKind
 from companion.sat.gp import GpParams
 from companion.sat.params import FilterSpec
 from companion.sim import scenario as sc
+from companion.sim import scenario_keys as sk
 from companion.sim.scenario import (
     BeliefComponent,
     BeliefSpec,
@@ -160,17 +161,17 @@ def test_empty_file_and_empty_tables_give_the_documented_defaults() -> None:
 
 def test_every_declared_default_is_valid_and_declarations_cover_every_field() -> None:
     top_fields = {f.name for f in dataclasses.fields(Scenario)} - set(SECTIONS)
-    assert {k.field for k in sc._TOP} == top_fields
+    assert {k.field for k in sk.TOP_KEYS} == top_fields
     spec_types = {
         "world": WorldSpec, "targets": TargetsSpec, "sensor": SensorSpec, "robot": RobotSpec,
         "belief": BeliefSpec, "filter": FilterSpec, "metrics": MetricsSpec, "geo": GeoSpec,
         "camera": CameraModel, "vehicle": VehicleSpec,
     }
-    assert tuple(sc._SECTIONS) == SECTIONS
-    for section, keys in sc._SECTIONS.items():
+    assert tuple(sk.SECTION_KEYS) == SECTIONS
+    for section, keys in sk.SECTION_KEYS.items():
         stored = [k.field for k in keys if k.stored]
         assert stored == [f.name for f in dataclasses.fields(spec_types[section])]
-    assert [k.field for k in sc._COMPONENT_KEYS] == [
+    assert [k.field for k in sk.COMPONENT_KEYS] == [
         f.name for f in dataclasses.fields(BeliefComponent)
     ]
 
@@ -800,7 +801,7 @@ _toml_like = st.recursive(
     max_leaves=12,
 )
 
-_ALL_LEAVES = sorted({k.leaf for keys in sc._SECTIONS.values() for k in keys})
+_ALL_LEAVES = sorted({k.leaf for keys in sk.SECTION_KEYS.values() for k in keys})
 
 
 @st.composite
