@@ -483,7 +483,8 @@ class Service:
         try:
             if kind is ms.CommandKind.STOP_SETPOINTS:
                 link.release()  # at once, and without asking for any mode
-                self._stream, self._previous, self._carrot = None, None, Carrot()
+                self._stream, self._previous = None, None
+                self._carrot = Carrot(None, self._carrot.progress)  # the plan's progress stays
                 self._streaming_since_s = None
             elif kind is ms.CommandKind.START_SETPOINTS:
                 self._stream = command.stream
