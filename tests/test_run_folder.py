@@ -13,7 +13,14 @@ import pytest
 
 from companion.errors import CompanionError, InputError
 from companion.report import TrackRecord
-from companion.run_folder import RunFolder, new_run_dir, read_records, read_steps
+from companion.run_folder import (
+    RunFolder,
+    new_run_dir,
+    read_camera,
+    read_config,
+    read_records,
+    read_steps,
+)
 
 NOW = datetime(2026, 5, 4, 3, 2, 1, tzinfo=UTC)
 
@@ -81,3 +88,20 @@ def test_plots_that_cannot_be_drawn_are_reported_or_raised(
     assert skipped and "matplotlib" in skipped[0] and (tmp_path / "summary.json").is_file()
     with pytest.raises(CompanionError, match="matplotlib"):
         folder.write_reports([], {"confirmed": 0}, plots=True)
+
+
+def test_the_snapshot_reads_back_as_the_configuration_and_camera(tmp_path: Path) -> None:
+    from companion.config import load_config  # noqa: PLC0415
+    from companion.pipeline import camera_model  # noqa: PLC0415
+
+    config = load_config(Path(__file__).resolve().parent.parent / "sitl" / "service.toml")
+    camera = camera_model(config.camera)
+    folder = RunFolder(tmp_path)
+    folder.write_snapshot(config, camera)
+    folder.close()
+    assert read_camera(tmp_path) == camera
+    assert read_config(tmp_path).data == config.data
+    assert (tmp_path / "version.txt").read_text().startswith("companion ")
+    (tmp_path / "camera.json").write_text('{"nope": 1}')
+    with pytest.raises(InputError, match="not a camera model"):
+        read_camera(tmp_path)
