@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.errors import ConfigError, ErrorCollector
+from companion.sat.linalg import spd_2x2_faults
 
 FloatArray = NDArray[np.float64]
 T = TypeVar("T")
@@ -300,10 +301,10 @@ class Matrix2(Kind[FloatArray]):
             raise ConfigError(key, f"must be a 2x2 array [[a, b], [b, d]], got {got}")
         row0 = Pair(Float()).parse(f"{key}[0]", rows[0])
         row1 = Pair(Float()).parse(f"{key}[1]", rows[1])
-        (a, b), (c, d) = row0, row1
-        # Scaled so that the 2x2 determinant cannot overflow for any finite entries.
-        s = max(abs(a), abs(b), abs(d))
-        if b != c or a <= 0.0 or (a / s) * (d / s) - (b / s) ** 2 <= 0.0:
+        matrix = np.array([row0, row1], dtype=np.float64)
+        # Scaled first (definiteness does not depend on scale): any finite entries can be checked.
+        asymmetric, indefinite = spd_2x2_faults(matrix / max(float(np.abs(matrix).max()), 1e-300))
+        if asymmetric or indefinite:
             raise ConfigError(key, "must be symmetric positive definite")
         return frozen_rows([row0, row1], 2)
 
