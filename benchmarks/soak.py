@@ -68,7 +68,6 @@ import argparse
 import array
 import asyncio
 import contextlib
-import json
 import math
 import pickle
 import sys
@@ -86,6 +85,7 @@ from numpy.typing import NDArray
 from companion.keys import load_toml
 from companion.plan.planners import lawnmower_path
 from companion.plan.world import World
+from companion.run_folder import read_events, read_steps
 from companion.sim.scenario import Scenario, parse_scenario
 from companion.vehicle.mavsdk_link import route_mavsdk_log
 from sitl import demo
@@ -424,10 +424,6 @@ def _open_fds() -> int:
     return len(list(Path("/proc/self/fd").iterdir()))
 
 
-def _lines(path: Path) -> list[dict[str, Any]]:
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-
-
 def _overrides(scenario: Scenario, options: SoakOptions) -> dict[str, dict[str, Any]]:
     """The service configuration tables the soak changes (on top of sitl/service.toml)."""
     return {
@@ -503,8 +499,7 @@ def soak(options: SoakOptions) -> SoakReport:
     assert probes.sitl is not None and probes.rss is not None  # fly() built its Sitl
     sitl = probes.sitl
     run_dir = result.run.out_dir
-    steps = _lines(run_dir / "steps.jsonl")
-    events = _lines(run_dir / "events.jsonl")
+    steps, events = read_steps(run_dir), read_events(run_dir)
     config = demo.service_config(scenario, sitl, out_dir, **_overrides(scenario, options))
     period_s = 1.0 / config.mission.setpoint_rate_hz
     cap = config.filter.max_components

@@ -87,6 +87,11 @@ def read_steps(run_dir: Path, warnings: list[str] | None = None) -> list[dict[st
     return list(read_records(run_dir / STEPS, [] if warnings is None else warnings))
 
 
+def read_events(run_dir: Path, warnings: list[str] | None = None) -> list[dict[str, Any]]:
+    """Every event record of a run folder (a torn last line is left out, with a warning)."""
+    return list(read_records(run_dir / EVENTS, [] if warnings is None else warnings))
+
+
 def read_config(run_dir: Path) -> ServiceConfig:
     """The configuration a run flew with."""
     return parse_config(json.loads((run_dir / "config.json").read_text()))
@@ -160,7 +165,6 @@ class RunFolder:
     def _plot(self, tracks: list[TrackRecord], area_en_m: FloatArray | None,
               mahalanobis: tuple[FloatArray, FloatArray] | None) -> None:
         tracks_en = np.array([[t.easting_m, t.northing_m] for t in tracks]).reshape(-1, 2)
-        steps = [json.loads(line) for line in (self.path / STEPS).read_text().splitlines()]
-        plot_flight(steps, tracks_en, self.path, area_en_m)
+        plot_flight(read_steps(self.path), tracks_en, self.path, area_en_m)
         if mahalanobis is not None:
             plot_mahalanobis(mahalanobis[0], mahalanobis[1], self.path)
