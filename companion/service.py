@@ -41,7 +41,7 @@ from companion.drive import Observation, frame_observation, observe, pose_sigma
 from companion.errors import CompanionError
 from companion.notify import Notifier
 from companion.pipeline import Pipeline, StepRecord, camera_model
-from companion.plan.gate import GateLimits, Setpoint, gate
+from companion.plan.gate import GateAction, GateLimits, Setpoint, gate
 from companion.plan.planners import LawnMower, Planner, make_planner
 from companion.plan.setpoints import (
     Carrot,
@@ -556,9 +556,9 @@ class Service:
             wanted = search_setpoint(frame, origin, target_xy,
                                      view.home_amsl_m + self.config.search.altitude_m, yaw_deg)
         result = gate(self._limits, wanted, self._previous, vehicle_ned, dt_s)
-        if result.action != "pass":
-            self.counters[f"setpoints_{result.action}"] += 1
-            self._event("gate", action=result.action, reasons=list(result.reasons))
+        if result.action is not GateAction.PASS:
+            self.counters[f"setpoints_{result.action.value}"] += 1
+            self._event("gate", action=result.action.value, reasons=list(result.reasons))
         if result.setpoint is None:
             return
         sp = result.setpoint
