@@ -37,7 +37,7 @@ from numpy.typing import NDArray
 from companion import mission as ms
 from companion.camera.source import Frame, LatestFrameGrabber, open_source
 from companion.config import ServiceConfig
-from companion.drive import Observation, frame_observation, observe, pose_sigma
+from companion.drive import Observation, frame_observation, observe
 from companion.errors import CompanionError
 from companion.notify import Notifier
 from companion.pipeline import Pipeline, StepRecord, camera_model
@@ -64,7 +64,7 @@ from companion.vehicle.signing import SigningRelay, load_signing_key
 from companion.vehicle.view import VehicleView
 from companion.vision.camera import CameraModel
 
-__all__ = ["RunResult", "Service", "camera_model", "pose_sigma"]
+__all__ = ["RunResult", "Service", "camera_model"]
 
 FloatArray = NDArray[np.float64]
 TELEMETRY_STALE_S = 0.8  # no telemetry (20 attitudes a second) for this long: the link is down

@@ -10,8 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.errors import ConfigError, InputError
+from companion.rotation import quaternion_from_euler
 from companion.vehicle.pose_buffer import GeoPoseSample, PoseBuffer, Quaternion, slerp
-from companion.vision.camera import quaternion_from_euler
 
 LEVEL: Quaternion = (1.0, 0.0, 0.0, 0.0)
 

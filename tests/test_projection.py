@@ -12,12 +12,12 @@ from scipy.spatial.transform import Rotation
 
 from companion.errors import ConfigError, InputError
 from companion.geo import Utm
+from companion.rotation import quaternion_from_euler
 from companion.vision.camera import (
     BodyPose,
     CameraModel,
     pixels_to_ground,
     project_points,
-    quaternion_from_euler,
 )
 from companion.vision.projection import (
     GeoPose,

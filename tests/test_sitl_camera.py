@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from numpy.typing import NDArray
 
 from companion.errors import ConfigError, InputError
+from companion.rotation import quaternion_from_euler, rotation_from_quaternion
 from companion.vision.camera import (
     BodyPose,
     CameraModel,
@@ -20,8 +21,6 @@ from companion.vision.camera import (
     ground_footprint,
     pixels_to_ground,
     project_points,
-    quaternion_from_euler,
-    rotation_from_quaternion,
     undistort_normalized,
 )
 from companion.vision.tags import TagDetector, detect_centres

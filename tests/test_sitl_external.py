@@ -25,8 +25,9 @@ import pytest
 from numpy.typing import NDArray
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from companion.rotation import quaternion_from_euler
 from companion.sim.scenario import Scenario, load_scenario
-from companion.vision.camera import BodyPose, project_points, quaternion_from_euler
+from companion.vision.camera import BodyPose, project_points
 from companion.vision.tags import TagDetector, detect_centres
 from sitl.cli import main, sitl_scenarios
 from sitl.external import ESTIMATE, HIL_STATE, SIMSTATE, ExternalSitl, parse_autopilot_url

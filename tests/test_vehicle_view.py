@@ -8,7 +8,7 @@ from dataclasses import astuple
 import pytest
 
 from companion.config import PoseConfig
-from companion.service import pose_sigma
+from companion.drive import pose_sigma
 from companion.vehicle.events import describe_event
 from companion.vehicle.view import ACCURACY_FRESH_S, Accuracy, VehicleView, height_agl_m
 

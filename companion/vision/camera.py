@@ -42,8 +42,6 @@ __all__ = [
     "pixels_to_ground",
     "pixels_to_normalized",
     "project_points",
-    "quaternion_from_euler",
-    "rotation_from_quaternion",
     "undistort_normalized",
 ]
 

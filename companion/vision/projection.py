@@ -24,6 +24,7 @@ from scipy.spatial import ConvexHull
 
 from companion.errors import ConfigError, InputError
 from companion.geo import LocalNed, Utm
+from companion.rotation import rotation_from_quaternion
 from companion.sat.fov import ConvexPolygon
 from companion.vision.camera import (
     MIN_CAMERA_HEIGHT_M,
@@ -32,7 +33,6 @@ from companion.vision.camera import (
     ground_footprint,
     is_number,
     pixel_rays_camera,
-    rotation_from_quaternion,
 )
 
 FloatArray = NDArray[np.float64]
