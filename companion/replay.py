@@ -41,7 +41,7 @@ from companion.metrics import mahalanobis_to_tracks
 from companion.pipeline import Pipeline, StepRecord, camera_model
 from companion.report import Score, TrackRecord, confirmed_tracks, score
 from companion.run_folder import RunFolder, read_camera, read_config, read_records
-from companion.vehicle.plausibility import PositionGate
+from companion.vehicle.plausibility import PositionGate, offset_ne_m
 from companion.vehicle.view import VehicleView
 from companion.vision.camera import CameraModel
 from companion.vision.projection import GeoPose, PoseUncertainty
@@ -307,9 +307,6 @@ class _Frames:
             self._video.release()
 
 
-_M_PER_DEG_LAT = 111_320.0  # enough for a velocity between samples a fraction of a second apart
-
-
 class _LogTelemetry:
     """A flight log's poses fed to a `VehicleView` in time order, as live telemetry is: bad
     samples and implausible jumps (a GPS glitch) are refused as they would be in flight.
@@ -333,9 +330,8 @@ class _LogTelemetry:
         (t0, lat0, lon0), (t1, lat1, lon1) = self._accepted
         if t1 - t0 <= 0.0:
             return 0.0, 0.0
-        m_per_deg_lon = _M_PER_DEG_LAT * math.cos(math.radians(lat1))
-        return ((lat1 - lat0) * _M_PER_DEG_LAT / (t1 - t0),
-                (lon1 - lon0) * m_per_deg_lon / (t1 - t0))
+        north_m, east_m = offset_ne_m(lat1, lon1, lat0, lon0)
+        return -north_m / (t1 - t0), -east_m / (t1 - t0)
 
     def _feed_until(self, until_s: float) -> None:
         """Every sample up to until_s, positions and attitudes interleaved by time."""

@@ -15,9 +15,16 @@ from dataclasses import dataclass
 
 from companion.errors import ConfigError
 
-__all__ = ["PositionGate"]
+__all__ = ["PositionGate", "offset_ne_m"]
 
 _M_PER_DEG_LAT = 111_320.0  # metres per degree of latitude; enough for a gate of metres
+
+
+def offset_ne_m(lat0_deg: float, lon0_deg: float, lat1_deg: float,
+                lon1_deg: float) -> tuple[float, float]:
+    """North and east metres from the first position to the second (a few km at most)."""
+    m_per_deg_lon = _M_PER_DEG_LAT * math.cos(math.radians(lat0_deg))
+    return (lat1_deg - lat0_deg) * _M_PER_DEG_LAT, (lon1_deg - lon0_deg) * m_per_deg_lon
 
 
 @dataclass
