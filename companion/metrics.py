@@ -1,4 +1,4 @@
-"""Evaluation metrics over 2-D positions in metres: OSPA and Mahalanobis distance to tracks.
+"""Evaluation metrics over 2-D positions in metres: OSPA, GOSPA, Mahalanobis distance to tracks.
 
 Pure functions over numpy arrays; nothing here reads a clock, logs or keeps state.
 """
@@ -6,6 +6,7 @@ Pure functions over numpy arrays; nothing here reads a clock, logs or keeps stat
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
@@ -15,6 +16,9 @@ from companion.errors import InputError
 from companion.sat.linalg import spd_2x2_faults
 
 __all__ = [
+    "GospaAssignment",
+    "gospa_assignment",
+    "gospa_components",
     "mahalanobis_to_tracks",
     "ospa",
     "ospa_components",
@@ -22,6 +26,7 @@ __all__ = [
 ]
 
 FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.intp]
 
 
 def _positions_xy(points_xy: object, name: str) -> FloatArray:
@@ -39,17 +44,23 @@ def _positions_xy(points_xy: object, name: str) -> FloatArray:
     return arr
 
 
-def _check_order_cutoff(p: float, c: float) -> tuple[float, float]:
-    """Validate the OSPA order p (finite, >= 1) and cut-off c (finite, > 0)."""
+def _check_order_cutoff(p: float, c: float, metric: str = "OSPA") -> tuple[float, float]:
+    """Validate the order p (finite, >= 1) and cut-off c (finite, > 0) of `metric`."""
     try:
         p_f, c_f = float(p), float(c)
     except (TypeError, ValueError) as exc:
-        raise InputError(f"OSPA order p and cut-off c must be numbers ({exc})") from exc
+        raise InputError(f"{metric} order p and cut-off c must be numbers ({exc})") from exc
     if not (math.isfinite(p_f) and p_f >= 1.0):
-        raise InputError(f"OSPA order p must be finite and >= 1, got {p!r}")
+        raise InputError(f"{metric} order p must be finite and >= 1, got {p!r}")
     if not (math.isfinite(c_f) and c_f > 0.0):
-        raise InputError(f"OSPA cut-off c must be finite and > 0, got {c!r}")
+        raise InputError(f"{metric} cut-off c must be finite and > 0, got {c!r}")
     return p_f, c_f
+
+
+def _distances_m(est: FloatArray, tru: FloatArray) -> FloatArray:
+    """Euclidean distance (m) from every estimate (rows) to every true target (columns)."""
+    diff = est[:, None, :] - tru[None, :, :]
+    return np.hypot(diff[..., 0], diff[..., 1])
 
 
 def ospa_components(
@@ -72,8 +83,7 @@ def ospa_components(
     if n_small == 0:
         return c_f, 0.0, c_f
 
-    diff = est[:, None, :] - tru[None, :, :]
-    dist_m = np.hypot(diff[..., 0], diff[..., 1])
+    dist_m = _distances_m(est, tru)
     # d^(c)(x, y)^p = min(d, c)^p (cut-off distance), divided by c^p so every cost lies in
     # [0, 1]: the optimal assignment is unchanged by the positive factor and c^p cannot overflow.
     cost = (np.minimum(dist_m, c_f) / c_f) ** p_f
@@ -93,6 +103,65 @@ def ospa(estimates_xy: FloatArray, truth_xy: FloatArray, p: float, c: float) -> 
     Both empty gives 0; exactly one empty gives c. Raises InputError on bad p, c or points.
     """
     return ospa_components(estimates_xy, truth_xy, p, c)[0]
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class GospaAssignment:
+    """GOSPA (alpha = 2) of two point sets: the total, its parts, and the pairs it assigns.
+
+    total_m^p = localisation_m^p + c^p / 2 (missed + false). `estimate_idx[k]` and
+    `truth_idx[k]` are the k-th assigned pair (distance < c), in ascending truth index.
+    """
+
+    total_m: float
+    localisation_m: float
+    missed: int
+    false: int
+    estimate_idx: IntArray
+    truth_idx: IntArray
+
+
+def gospa_assignment(
+    estimates_xy: FloatArray, truth_xy: FloatArray, c: float, p: float = 2.0
+) -> GospaAssignment:
+    """GOSPA (alpha = 2, order p, cut-off c in m) with its parts and the pairs within c.
+
+    Rahmathullah, García-Fernández & Svensson 2017. An optimal assignment on min(d, c)^p that
+    pairs an estimate and a true target at distance d >= c leaves both unassigned instead: one
+    missed and one false target, at the same cost. The localisation part is reported as a
+    distance, (sum over assigned pairs of d^p)^(1/p) in metres; missed and false are counts.
+    Both empty gives zeros. Raises InputError for p < 1, c <= 0, non-finite values or arrays
+    not of shape (k, 2).
+    """
+    p_f, c_f = _check_order_cutoff(p, c, "GOSPA")
+    est = _positions_xy(estimates_xy, "estimates_xy")
+    tru = _positions_xy(truth_xy, "truth_xy")
+    est_idx = tru_idx = np.empty(0, dtype=np.intp)
+    loc_sum = 0.0  # sum over assigned pairs of (d / c)^p: in units of c^p, so no overflow
+    if len(est) and len(tru):
+        dist_m = _distances_m(est, tru)
+        # min(d, c)^p / c^p: the positive factor leaves the optimal assignment unchanged.
+        cost = (np.minimum(dist_m, c_f) / c_f) ** p_f
+        # On the transpose: pairs come in ascending truth index.
+        tru_all, est_all = linear_sum_assignment(cost.T)
+        within = dist_m[est_all, tru_all] < c_f
+        est_idx, tru_idx = est_all[within].astype(np.intp), tru_all[within].astype(np.intp)
+        loc_sum = float(cost[est_idx, tru_idx].sum())
+    missed = len(tru) - len(tru_idx)
+    false = len(est) - len(est_idx)
+    # GOSPA^p = min over assignments gamma of sum_{(i,j) in gamma} d(x_i, y_j)^p
+    #           + c^p / 2 (|X| + |Y| - 2 |gamma|),  with |X| + |Y| - 2 |gamma| = missed + false
+    total_m = c_f * (loc_sum + 0.5 * (missed + false)) ** (1.0 / p_f)
+    loc_m = c_f * loc_sum ** (1.0 / p_f)  # (sum_{(i,j) in gamma} d(x_i, y_j)^p)^(1/p)
+    return GospaAssignment(total_m, loc_m, missed, false, est_idx, tru_idx)
+
+
+def gospa_components(
+    estimates_xy: FloatArray, truth_xy: FloatArray, c: float, p: float = 2.0
+) -> tuple[float, float, int, int]:
+    """GOSPA (alpha = 2) as (total_m, localisation_m, missed, false); see `gospa_assignment`."""
+    g = gospa_assignment(estimates_xy, truth_xy, c, p)
+    return g.total_m, g.localisation_m, g.missed, g.false
 
 
 def mahalanobis_to_tracks(

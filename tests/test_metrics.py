@@ -1,5 +1,5 @@
-"""Tests for companion.metrics: OSPA (hand cases, Stone Soup oracle, metric axioms) and
-Mahalanobis distance to tracks (hand cases, per-pair loop oracle)."""
+"""Tests for companion.metrics: OSPA and GOSPA (hand cases, Stone Soup oracle, metric axioms)
+and Mahalanobis distance to tracks (hand cases, per-pair loop oracle)."""
 
 from __future__ import annotations
 
@@ -17,6 +17,8 @@ from hypothesis import strategies as st
 
 from companion.errors import InputError
 from companion.metrics import (
+    gospa_assignment,
+    gospa_components,
     mahalanobis_to_tracks,
     ospa,
     ospa_components,
@@ -270,6 +272,187 @@ def test_ospa_triangle_inequality(
     x: FloatArray, y: FloatArray, z: FloatArray, p: float, c: float
 ) -> None:
     assert ospa(x, z, p, c) <= ospa(x, y, p, c) + ospa(y, z, p, c) + 1e-9
+
+
+# ------------------------------------------------------------------------ GOSPA, hand cases
+
+
+@pytest.mark.parametrize("p", [1.0, 2.0])
+def test_gospa_both_empty_is_zero(p: float) -> None:
+    empty = np.empty((0, 2))
+    assert gospa_components(empty, empty, c=10.0, p=p) == (0.0, 0.0, 0, 0)
+    g = gospa_assignment(empty, empty, c=10.0, p=p)
+    assert g.estimate_idx.size == g.truth_idx.size == 0
+
+
+@pytest.mark.parametrize("p", [1.0, 2.0])
+def test_gospa_one_empty_counts_every_point(p: float) -> None:
+    empty = np.empty((0, 2))
+    three = _pts((0.0, 0.0), (1.0, 0.0), (50.0, 50.0))
+    expected = (10.0**p / 2.0 * 3) ** (1.0 / p)  # (c^p / 2 * 3)^(1/p)
+    total, loc, missed, false = gospa_components(empty, three, c=10.0, p=p)
+    assert (loc, missed, false) == (0.0, 3, 0)
+    assert total == pytest.approx(expected, rel=1e-15)
+    total, loc, missed, false = gospa_components(three, empty, c=10.0, p=p)
+    assert (loc, missed, false) == (0.0, 0, 3)
+    assert total == pytest.approx(expected, rel=1e-15)
+
+
+def test_gospa_one_missed_target_p2() -> None:
+    truth = _pts((0.0, 0.0), (40.0, 0.0))
+    est = _pts((3.0, 4.0))  # 5 m from the first target; the second is missed
+    total, loc, missed, false = gospa_components(est, truth, c=10.0, p=2.0)
+    assert loc == pytest.approx(5.0, rel=1e-15)
+    assert (missed, false) == (1, 0)
+    assert total == pytest.approx(math.sqrt(25.0 + 100.0 / 2.0), rel=1e-15)
+
+
+def test_gospa_one_false_estimate_p1() -> None:
+    truth = _pts((0.0, 0.0))
+    est = _pts((0.0, 2.0), (30.0, 30.0))  # 2 m from the target, and one false
+    total, loc, missed, false = gospa_components(est, truth, c=10.0, p=1.0)
+    assert loc == pytest.approx(2.0, rel=1e-15)
+    assert (missed, false) == (0, 1)
+    assert total == pytest.approx(2.0 + 10.0 / 2.0, rel=1e-15)
+    g = gospa_assignment(est, truth, c=10.0, p=1.0)
+    assert g.estimate_idx.tolist() == [0] and g.truth_idx.tolist() == [0]
+
+
+@pytest.mark.parametrize("p", [1.0, 2.0])
+def test_gospa_pair_at_or_beyond_cutoff_is_one_missed_and_one_false(p: float) -> None:
+    truth = _pts((0.0, 0.0))
+    for dist_m in (10.0, 12.0, 1000.0):  # d >= c: not a localisation error
+        total, loc, missed, false = gospa_components(_pts((dist_m, 0.0)), truth, c=10.0, p=p)
+        assert (loc, missed, false) == (0.0, 1, 1)
+        assert total == pytest.approx(10.0, rel=1e-15)  # (c^p / 2 * 2)^(1/p) = c
+        g = gospa_assignment(_pts((dist_m, 0.0)), truth, c=10.0, p=p)
+        assert g.estimate_idx.size == g.truth_idx.size == 0
+    total, loc, missed, false = gospa_components(_pts((9.0, 0.0)), truth, c=10.0, p=p)
+    assert (missed, false) == (0, 0)
+    assert loc == pytest.approx(9.0, rel=1e-15) and total == pytest.approx(9.0, rel=1e-15)
+
+
+def test_gospa_assigns_on_d_power_p_and_reports_pairs_in_truth_order() -> None:
+    # As in the OSPA case: p = 1 pairs (A-C, B-D) at (0, 10), p = 2 pairs (A-D, B-C) at (6, 6).
+    est = _pts((0.0, 0.0), (6.0, 0.0))  # A, B
+    truth = _pts((0.0, 0.0), (-7.0 / 3.0, math.sqrt(275.0) / 3.0))  # C = A, D
+    g1 = gospa_assignment(est, truth, c=100.0, p=1.0)
+    assert (g1.estimate_idx.tolist(), g1.truth_idx.tolist()) == ([0, 1], [0, 1])
+    assert g1.total_m == pytest.approx(10.0, abs=1e-12)
+    g2 = gospa_assignment(est, truth, c=100.0, p=2.0)
+    assert (g2.estimate_idx.tolist(), g2.truth_idx.tolist()) == ([1, 0], [0, 1])
+    assert g2.total_m == pytest.approx(math.sqrt(72.0), abs=1e-12)
+    assert g2.localisation_m == g2.total_m
+
+
+def test_gospa_default_order_is_2_and_inputs_are_not_mutated() -> None:
+    est = _pts((1.0, 2.0), (30.0, 4.0))
+    truth = _pts((1.5, 2.0))
+    est0, truth0 = est.copy(), truth.copy()
+    assert gospa_components(est, truth, 10.0) == gospa_components(est, truth, 10.0, p=2.0)
+    np.testing.assert_array_equal(est, est0)
+    np.testing.assert_array_equal(truth, truth0)
+
+
+@pytest.mark.parametrize(
+    ("p", "c"),
+    [(0.5, 10.0), (math.nan, 10.0), (math.inf, 10.0), (2.0, 0.0), (2.0, -1.0), (2.0, math.inf)],
+)
+def test_gospa_rejects_bad_order_or_cutoff(p: float, c: float) -> None:
+    with pytest.raises(InputError, match=r"GOSPA (order p|cut-off c)"):
+        gospa_components(_pts((0.0, 0.0)), _pts((1.0, 1.0)), c=c, p=p)
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [np.array([[0.0, math.nan]]), np.array([[math.inf, 0.0]]), np.zeros((2, 3)), np.zeros(3),
+     [["a", "b"]]],
+)
+def test_gospa_rejects_bad_points(bad: Any) -> None:
+    with pytest.raises(InputError, match="estimates_xy"):
+        gospa_components(bad, _pts((1.0, 1.0)), c=10.0)
+    with pytest.raises(InputError, match="truth_xy"):
+        gospa_assignment(_pts((1.0, 1.0)), bad, c=10.0)
+
+
+# ----------------------------------------------------------- GOSPA against Stone Soup 1.9.1
+
+# Stone Soup's GOSPAMetric (alpha = 2) reports its parts in the p-th power: localisation is
+# sum d^p over the pairs with d < c, missed and false are the counts times c^p / 2.
+GOSPA_REFERENCE_TOL = 1e-12  # measured: 4e-16 relative on the total, 3e-14 m on localisation
+
+
+@pytest.mark.parametrize("p", [1.0, 2.0, 3.0])
+@pytest.mark.parametrize("c", [5.0, 10.0, 40.0])
+def test_gospa_matches_stonesoup_gospa_metric(p: float, c: float) -> None:
+    ospametric = pytest.importorskip("stonesoup.metricgenerator.ospametric")
+    metric = ospametric.GOSPAMetric(p=p, c=c)
+    dummy = c**p / 2.0
+    for est, truth in _random_sets(seed=int(10 * p + c)):
+        tracks, truths = _stonesoup_states(est, truth)
+        parts, _ = metric.compute_gospa_metric(tracks, truths)
+        ref = parts.value
+        total, loc, missed, false = gospa_components(est, truth, c=c, p=p)
+        assert total == pytest.approx(ref["distance"], rel=GOSPA_REFERENCE_TOL)
+        assert loc == pytest.approx(ref["localisation"] ** (1.0 / p), rel=GOSPA_REFERENCE_TOL,
+                                    abs=GOSPA_REFERENCE_TOL)
+        assert missed == pytest.approx(ref["missed"] / dummy, abs=1e-9)
+        assert false == pytest.approx(ref["false"] / dummy, abs=1e-9)
+
+
+# ---------------------------------------------------------------- GOSPA, metric properties
+
+
+@settings(deadline=None, max_examples=150)
+@given(x=_point_set, y=_point_set, p=_order, c=_cutoff)
+def test_gospa_swapping_sets_swaps_missed_and_false(
+    x: FloatArray, y: FloatArray, p: float, c: float
+) -> None:
+    total, loc, missed, false = gospa_components(x, y, c=c, p=p)
+    total_r, loc_r, missed_r, false_r = gospa_components(y, x, c=c, p=p)
+    assert total == pytest.approx(total_r, rel=1e-12, abs=1e-12)
+    assert loc == pytest.approx(loc_r, rel=1e-12, abs=1e-12)
+    assert (missed, false) == (false_r, missed_r)
+
+
+@settings(deadline=None, max_examples=150)
+@given(x=_point_set, y=_point_set, p=_order, c=_cutoff)
+def test_gospa_parts_add_in_the_pth_power_and_pairs_lie_within_c(
+    x: FloatArray, y: FloatArray, p: float, c: float
+) -> None:
+    g = gospa_assignment(x, y, c=c, p=p)
+    assert g.total_m**p == pytest.approx(
+        g.localisation_m**p + c**p / 2.0 * (g.missed + g.false), rel=1e-12, abs=1e-12
+    )
+    pairs = g.truth_idx.size
+    assert g.estimate_idx.size == pairs == len(y) - g.missed == len(x) - g.false
+    assert len(set(g.estimate_idx.tolist())) == len(set(g.truth_idx.tolist())) == pairs
+    assert np.all(np.diff(g.truth_idx) > 0)
+    dist_m = np.hypot(*(x[g.estimate_idx] - y[g.truth_idx]).T)
+    assert np.all(dist_m < c)
+    assert g.localisation_m == pytest.approx(float((dist_m**p).sum()) ** (1.0 / p), rel=1e-12)
+
+
+@settings(deadline=None, max_examples=150)
+@given(x=_point_set, y=_point_set, p=_order, c=_cutoff)
+def test_gospa_relates_to_ospa(x: FloatArray, y: FloatArray, p: float, c: float) -> None:
+    # With n >= m the set sizes: n OSPA^p = GOSPA^p + (c^p / 2)(n - m).
+    n, m = max(len(x), len(y)), min(len(x), len(y))
+    total = gospa_components(x, y, c=c, p=p)[0]
+    assert n * ospa(x, y, p, c) ** p == pytest.approx(
+        total**p + c**p / 2.0 * (n - m), rel=1e-9, abs=1e-9
+    )
+
+
+@settings(deadline=None, max_examples=100)
+@given(x=_point_set, y=_point_set, z=_point_set, p=_order, c=_cutoff)
+def test_gospa_triangle_inequality(
+    x: FloatArray, y: FloatArray, z: FloatArray, p: float, c: float
+) -> None:
+    def d(a: FloatArray, b: FloatArray) -> float:
+        return gospa_components(a, b, c=c, p=p)[0]
+
+    assert d(x, z) <= d(x, y) + d(y, z) + 1e-9
 
 
 # ------------------------------------------------------------------------- Mahalanobis
