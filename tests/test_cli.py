@@ -17,6 +17,8 @@ CONTRACT_KEYS = {
     "scenario", "seed", "steps", "wall_s", "step_ms_median", "step_ms_p95", "true_count",
     "tracks_confirmed", "weight_sum", "components", "mahal_closest_mean", "mahal_closest_std",
     "mahal_second_mean", "ospa_mean", "ospa_tail_mean", "ospa_final",
+    "gospa_final", "gospa_tail_mean", "gospa_localisation_final", "gospa_missed_final",
+    "gospa_false_final", "nees_mean", "t_all_confirmed_s",
 }
 
 SHORT = """
@@ -56,6 +58,12 @@ def test_simulate_json_prints_exactly_the_contract_object(
     assert summary["steps"] == 150
     assert summary["scenario"] == "cli-short"
     assert summary["true_count"] == 2
+    for key in ("gospa_final", "gospa_tail_mean", "gospa_localisation_final"):
+        assert isinstance(summary[key], float) and summary[key] >= 0.0
+    for key in ("gospa_missed_final", "gospa_false_final"):
+        assert type(summary[key]) is int and summary[key] >= 0
+    for key in ("nees_mean", "t_all_confirmed_s"):  # null when never defined
+        assert summary[key] is None or (isinstance(summary[key], float) and summary[key] >= 0.0)
 
 
 def test_simulate_writes_plots(
@@ -134,7 +142,11 @@ def test_quick_study_writes_every_table_and_plot(
                   "limited-FOV update rule", "Goals", "Qualitative findings", "Filter time"):
         assert title in markdown
     assert "3.03" in markdown  # the paper's numbers sit beside ours
+    for row in ("GOSPA at the end", "GOSPA missed targets", "GOSPA false tracks", "NEES"):
+        assert row in markdown
     assert len(list(out_dir.glob("table*.csv"))) == 8
     assert (out_dir / "runs.csv").read_text().count("\n") == 15  # header + 14 runs
+    header = (out_dir / "runs.csv").read_text().splitlines()[0].split(",")
+    assert set(header) >= CONTRACT_KEYS
     assert len(list((out_dir / "plots").glob("*.png"))) == 10
     assert len(list((out_dir / "runs").glob("*.png"))) == 14 * 4

@@ -137,7 +137,7 @@ def test_example_parses_with_its_values() -> None:
     assert (f.p_survive, f.push_rule, f.push_band, f.extract_weight) == (1.0, True, (0.4, 0.6), 0.5)
     assert (f.confirm_length, f.prune_weight, f.merge_distance) == (3, 0.001, 10.0)
     assert (f.max_components, f.motion, f.process_noise, f.birth_weight) == (100, "gp", 0.01, 1.0)
-    assert s.metrics == MetricsSpec(ospa_c=100.0, ospa_p=2.0)
+    assert s.metrics == MetricsSpec(ospa_c=100.0, ospa_p=2.0, gospa_c=10.0)
 
 
 def test_empty_file_and_empty_tables_give_the_documented_defaults() -> None:
@@ -310,7 +310,7 @@ def test_missing_file_and_toml_syntax_error(tmp_path: Path) -> None:
                                    "count, positions, speed, turn_every, appear, disappear, "
                                    "tag_size_m)"),
         (_with("metrics", ospa_cut=1), "metrics.ospa_cut: unknown key (did you mean 'ospa_c'? "
-                                       "known: ospa_c, ospa_p)"),
+                                       "known: ospa_c, ospa_p, gospa_c)"),
         ({"belief": {"kind": "explicit", "components": [{"mean": [0, 0], "wieght": 2}]}},
          "belief.components[0].wieght: unknown key (did you mean 'weight'? known: weight, mean, "
          "cov)"),
@@ -477,6 +477,7 @@ def test_numpy_scalars_from_python_callers_are_accepted() -> None:
         (_with("filter", track_timeout=0), "filter.track_timeout: must be > 0, got 0.0"),
         (_with("metrics", ospa_c=0), "metrics.ospa_c: must be > 0, got 0.0"),
         (_with("metrics", ospa_p=0.5), "metrics.ospa_p: must be >= 1, got 0.5"),
+        (_with("metrics", gospa_c=0), "metrics.gospa_c: must be > 0, got 0.0"),
     ],
 )
 def test_out_of_range_values_are_named(data: dict[str, Any], message: str) -> None:

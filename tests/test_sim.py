@@ -95,3 +95,46 @@ def test_variants_still_find_every_target(
     summary = simulate(parse_scenario(scenario)).summary()
     assert summary["tracks_confirmed"] == expected
     assert summary["ospa_final"] < 2.0
+
+
+def test_gospa_nees_and_time_to_all_confirmed_follow_the_series() -> None:
+    scenario: dict[str, Any] = {
+        "seed": 3,
+        "steps": 300,
+        "world": {"size": [50.0, 50.0]},
+        "targets": {"positions": [[10.0, 12.0], [40.0, 20.0], [25.0, 42.0]]},
+        "sensor": {"fov_radius": 12.0, "noise_std": 0.5, "clutter_prob": 0.1},
+        "robot": {"speed": 1.0, "lane_spacing": 12.0, "sweeps": 2},
+        "belief": {"kind": "empty"},
+        "metrics": {"gospa_c": 5.0},
+    }
+    r = simulate(parse_scenario(scenario))
+    summary = r.summary()
+    k = r.t_s.size
+    for name in ("gospa", "gospa_localisation", "gospa_missed", "gospa_false", "nees",
+                 "nees_count"):
+        assert getattr(r, name).shape == (k,)
+    # Before the first confirmed track every true target is missed.
+    first_conf = int(np.argmax(r.tracks_confirmed > 0))
+    assert np.all(r.gospa_missed[:first_conf] == r.true_count[:first_conf])
+    assert np.all(r.gospa_false + r.nees_count == r.tracks_confirmed)
+    assert np.all(r.gospa_missed + r.nees_count == r.true_count)
+    assert np.all(np.isnan(r.nees) == (r.nees_count == 0))
+    # GOSPA^p = localisation^p + c^p / 2 (missed + false), with c = 5 and p = metrics.ospa_p = 2.
+    np.testing.assert_allclose(
+        r.gospa**2, r.gospa_localisation**2 + 25.0 / 2.0 * (r.gospa_missed + r.gospa_false),
+        rtol=1e-12,
+    )
+    assert summary["gospa_final"] == r.gospa[-1]
+    assert summary["gospa_tail_mean"] == pytest.approx(r.gospa[k - k // 5 :].mean(), rel=1e-12)
+    assert summary["gospa_localisation_final"] == r.gospa_localisation[-1]
+    assert (summary["gospa_missed_final"], summary["gospa_false_final"]) == (
+        int(r.gospa_missed[-1]), int(r.gospa_false[-1]))
+    # Pooled over (step, target) pairs, so steps with more assigned targets weigh more.
+    has = r.nees_count > 0
+    pooled = float((r.nees[has] * r.nees_count[has]).sum() / r.nees_count.sum())
+    assert summary["nees_mean"] == pytest.approx(pooled, rel=1e-12)
+    assert summary["tracks_confirmed"] == 3 and summary["gospa_missed_final"] == 0
+    all_found = np.flatnonzero(r.gospa_missed == 0)
+    assert summary["t_all_confirmed_s"] == r.t_s[all_found[0]]
+    assert np.all(r.gospa_missed[: all_found[0]] > 0)

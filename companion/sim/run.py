@@ -15,7 +15,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.metrics import mahalanobis_to_tracks, ospa, summarize_mahalanobis
+from companion.metrics import (
+    gospa_assignment,
+    mahalanobis_to_tracks,
+    ospa,
+    summarize_mahalanobis,
+)
 from companion.plan.planners import (
     LawnMower,
     Planner,
@@ -107,6 +112,12 @@ class SimResult:
     weight_sum: FloatArray
     components: NDArray[np.int64]
     ospa: FloatArray
+    gospa: FloatArray  # GOSPA (alpha = 2, c = metrics.gospa_c, p = metrics.ospa_p), m
+    gospa_localisation: FloatArray  # its localisation part, m
+    gospa_missed: NDArray[np.int64]  # true targets without a confirmed track within gospa_c
+    gospa_false: NDArray[np.int64]  # confirmed tracks without a true target within gospa_c
+    nees: FloatArray  # mean NEES over the true targets GOSPA assigns a track (nan: none)
+    nees_count: NDArray[np.int64]  # how many true targets that mean is over
     mahal_closest_mean: FloatArray
     mahal_second_mean: FloatArray
     max_track_var_m2: FloatArray  # largest position variance among confirmed tracks (nan: none)
@@ -126,7 +137,10 @@ class SimResult:
             state.tracks.covs[confirmed, :2, :2],
         )
         k = self.t_s.size
-        tail = self.ospa[k - max(1, k // 5) :]
+        tail = slice(k - max(1, k // 5), None)  # the last 20 % of steps
+        assigned = self.nees_count > 0
+        nees_sums = self.nees[assigned] * self.nees_count[assigned]  # per step
+        all_confirmed = np.flatnonzero((self.true_count > 0) & (self.gospa_missed == 0))
         out: dict[str, Any] = {
             "scenario": self.scenario.name,
             "seed": self.seed,
@@ -141,8 +155,18 @@ class SimResult:
             "components": int(self.components[-1]),
             **summarize_mahalanobis(closest, second),
             "ospa_mean": float(self.ospa.mean()),
-            "ospa_tail_mean": float(tail.mean()),
+            "ospa_tail_mean": float(self.ospa[tail].mean()),
             "ospa_final": float(self.ospa[-1]),
+            "gospa_final": float(self.gospa[-1]),
+            "gospa_tail_mean": float(self.gospa[tail].mean()),
+            "gospa_localisation_final": float(self.gospa_localisation[-1]),
+            "gospa_missed_final": int(self.gospa_missed[-1]),
+            "gospa_false_final": int(self.gospa_false[-1]),
+            # Pooled over every (step, true target) pair, not a mean of the per-step means.
+            "nees_mean": (
+                float(nees_sums.sum() / self.nees_count.sum()) if assigned.any() else math.nan
+            ),
+            "t_all_confirmed_s": float(self.t_s[all_confirmed[0]]) if all_confirmed.size else None,
         }
         return {key: _json_number(value) for key, value in out.items()}
 
@@ -192,7 +216,8 @@ def simulate(s: Scenario, progress: Progress | None = None) -> SimResult:
     series: dict[str, list[float]] = {
         key: []
         for key in (
-            "t", "true", "conf", "wsum", "comp", "ospa", "mc", "ms", "maxvar", "ms_step", "x", "y"
+            "t", "true", "conf", "wsum", "comp", "ospa", "gospa", "gospa_loc", "gospa_missed",
+            "gospa_false", "nees", "nees_count", "mc", "ms", "maxvar", "ms_step", "x", "y",
         )
     }
     series["x"].append(float(robot[0]))
@@ -218,9 +243,8 @@ def simulate(s: Scenario, progress: Progress | None = None) -> SimResult:
         tracks = state.tracks
         conf = tracks.confirmed
         truth_xy = truth.alive_xy
-        closest, second = mahalanobis_to_tracks(
-            truth_xy, tracks.means[conf, :2], tracks.covs[conf, :2, :2]
-        )
+        conf_xy, conf_covs = tracks.means[conf, :2], tracks.covs[conf, :2, :2]
+        closest, second = mahalanobis_to_tracks(truth_xy, conf_xy, conf_covs)
         mahal = summarize_mahalanobis(closest, second)
         var = tracks.covs[conf][:, [0, 1], [0, 1]]
         series["t"].append(t_s)
@@ -228,9 +252,18 @@ def simulate(s: Scenario, progress: Progress | None = None) -> SimResult:
         series["conf"].append(int(conf.sum()))
         series["wsum"].append(state.mixture.total_weight)
         series["comp"].append(state.mixture.size)
-        series["ospa"].append(
-            ospa(tracks.means[conf, :2], truth_xy, s.metrics.ospa_p, s.metrics.ospa_c)
-        )
+        series["ospa"].append(ospa(conf_xy, truth_xy, s.metrics.ospa_p, s.metrics.ospa_c))
+        g = gospa_assignment(conf_xy, truth_xy, s.metrics.gospa_c, s.metrics.ospa_p)
+        series["gospa"].append(g.total_m)
+        series["gospa_loc"].append(g.localisation_m)
+        series["gospa_missed"].append(g.missed)
+        series["gospa_false"].append(g.false)
+        # NEES of each assigned true target: d^T P^-1 d, d = target - track, P its 2x2 covariance.
+        err = truth_xy[g.truth_idx] - conf_xy[g.estimate_idx]  # (n, 2)
+        p_inv_err = np.linalg.solve(conf_covs[g.estimate_idx], err[..., None])[..., 0]
+        nees = np.einsum("ki,ki->k", err, p_inv_err)
+        series["nees"].append(float(nees.mean()) if nees.size else math.nan)
+        series["nees_count"].append(nees.size)
         series["mc"].append(mahal["mahal_closest_mean"])
         series["ms"].append(mahal["mahal_second_mean"])
         series["maxvar"].append(float(var.max()) if var.size else math.nan)
@@ -253,6 +286,12 @@ def simulate(s: Scenario, progress: Progress | None = None) -> SimResult:
         weight_sum=np.array(series["wsum"]),
         components=np.array(series["comp"], dtype=np.int64),
         ospa=np.array(series["ospa"]),
+        gospa=np.array(series["gospa"]),
+        gospa_localisation=np.array(series["gospa_loc"]),
+        gospa_missed=np.array(series["gospa_missed"], dtype=np.int64),
+        gospa_false=np.array(series["gospa_false"], dtype=np.int64),
+        nees=np.array(series["nees"]),
+        nees_count=np.array(series["nees_count"], dtype=np.int64),
         mahal_closest_mean=np.array(series["mc"]),
         mahal_second_mean=np.array(series["ms"]),
         max_track_var_m2=np.array(series["maxvar"]),

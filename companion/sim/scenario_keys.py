@@ -129,6 +129,8 @@ SECTION_KEYS: dict[str, tuple[Key, ...]] = {
     "metrics": (
         Key("ospa_c", Float(gt=0), 100.0, "OSPA cut-off, metres"),
         Key("ospa_p", Float(ge=1), 2.0, "OSPA order"),
+        Key("gospa_c", Float(gt=0), 10.0,
+             "GOSPA cut-off, metres (alpha = 2, order = metrics.ospa_p)"),
     ),
     "geo": (
         Key("origin",

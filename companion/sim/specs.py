@@ -119,10 +119,11 @@ class BeliefSpec:
 
 @dataclass(frozen=True, slots=True)
 class MetricsSpec:
-    """OSPA cut-off (m) and order."""
+    """OSPA cut-off (m) and order; GOSPA cut-off (m), of the same order."""
 
     ospa_c: float
     ospa_p: float
+    gospa_c: float
 
 
 @dataclass(frozen=True, slots=True)
