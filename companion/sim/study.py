@@ -172,7 +172,12 @@ def build_tables(runs: Runs) -> list[tuple[str, list[str], list[list[str]]]]:
          ["confirmed tracks at the end (truth 10)",
           _fmt(runs.values(DYNAMIC.scenario, "tracks_confirmed")), ""],
          ["OSPA, last 20 % of steps (m)",
-          _fmt(runs.values(DYNAMIC.scenario, "ospa_tail_mean")), ""]],
+          _fmt(runs.values(DYNAMIC.scenario, "ospa_tail_mean")), ""],
+         *[[what, _fmt(runs.values(DYNAMIC.scenario, key)), ""] for key, what in (
+             ("gospa_final", "GOSPA at the end (m; c = 10, p = 2)"),
+             ("gospa_missed_final", "GOSPA missed targets at the end"),
+             ("gospa_false_final", "GOSPA false tracks at the end"),
+             ("nees_mean", "NEES to the GOSPA-assigned track (2 = calibrated)"))]],
     ))
     header = ["", *[f"{e.label} (ours)" for e in ESTIMATE],
               *[f"{e.label} (paper)" for e in ESTIMATE]]
@@ -191,10 +196,12 @@ def build_tables(runs: Runs) -> list[tuple[str, list[str], list[list[str]]]]:
             rows.append([setting, e.label, _fmt(runs.values(e.scenario, "ospa_mean")),
                          _fmt(runs.values(e.scenario, "ospa_tail_mean")),
                          f"{int(count_ok.sum())}/{count_ok.size}",
-                         _fmt(runs.values(e.scenario, "mahal_closest_mean"))])
+                         _fmt(runs.values(e.scenario, "mahal_closest_mean")),
+                         _fmt(runs.values(e.scenario, "nees_mean"))])
     tables.append(("The limited-FOV update rule (lawn mower, exact, 10 % clutter; OSPA c = 100, "
                    "p = 2)", ["GP", "rule", "OSPA mean (m)", "OSPA last 20 % (m)",
-                              "count = truth at the end", "Mahalanobis to closest"], rows))
+                              "count = truth at the end", "Mahalanobis to closest",
+                              "NEES (2 = calibrated)"], rows))
     rows = []
     for e in LAWNMOWER_GOAL_RUNS:
         count_ok = runs.values(e.scenario, "tracks_confirmed") == runs.values(
