@@ -50,9 +50,32 @@ def _simulate(args: argparse.Namespace) -> int:
 
 
 def _study(args: argparse.Namespace) -> int:
+    from companion.sim.engine import check_scheduler_address
     from companion.sim.study import run_study
 
-    run_study(seeds=args.seeds, out_dir=args.out, jobs=args.jobs, only=args.only, steps=args.steps)
+    if args.scheduler is not None:
+        check_scheduler_address(args.scheduler)
+    run_study(seeds=args.seeds, out_dir=args.out, jobs=args.jobs, only=args.only, steps=args.steps,
+              scheduler=args.scheduler)
+    return EXIT_OK
+
+
+def _battery(args: argparse.Namespace) -> int:
+    from companion.sim.battery import (
+        FAMILIES,
+        VARIANTS,
+        format_family_list,
+        parse_names,
+        run_battery,
+    )
+
+    if args.list:
+        sys.stdout.write(format_family_list())
+        return EXIT_OK
+    run_battery(families=parse_names(args.families, list(FAMILIES), "--families"),
+                seeds=args.seeds, out_dir=args.out,
+                variants=parse_names(args.variants, list(VARIANTS), "--variants"),
+                jobs=args.jobs, scheduler=args.scheduler, steps=args.steps)
     return EXIT_OK
 
 
@@ -184,7 +207,28 @@ def build_parser() -> argparse.ArgumentParser:
                        help="run only the experiments whose scenario name contains this text")
     study.add_argument("--steps", type=_positive_int, default=None,
                        help="cut every run to this many steps (a quick look, not the figures)")
+    study.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                       help="run on this dask.distributed scheduler instead of local processes")
     study.set_defaults(run=_study)
+
+    battery = sub.add_parser(
+        "battery", help="families of generated scenarios over seeds, estimator variants side by "
+                        "side")
+    battery.add_argument("--families", default=None, metavar="NAME,...",
+                         help="the families to run (default: all; see --list)")
+    battery.add_argument("--seeds", type=int, default=20, help="seeds per family and variant")
+    battery.add_argument("--out", type=Path, default=Path("out/battery"), help="output directory")
+    battery.add_argument("--variants", default="defaults", metavar="NAME,...",
+                         help="[filter] variants to compare (default: defaults)")
+    battery.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
+                         help="local worker processes (default: one per core)")
+    battery.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                         help="run on this dask.distributed scheduler instead of local processes")
+    battery.add_argument("--steps", type=int, default=None,
+                         help="cut every run to this many steps (a quick look)")
+    battery.add_argument("--list", action="store_true",
+                         help="print the families with a line each and exit")
+    battery.set_defaults(run=_battery)
 
     learn = sub.add_parser(
         "learn-gp",

@@ -11,7 +11,6 @@ import csv
 import math
 import sys
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -22,6 +21,7 @@ from numpy.typing import NDArray
 from companion.errors import CompanionError
 from companion.progress import progress_bar
 from companion.scenario_lookup import resolve_scenario
+from companion.sim.engine import run_tasks
 
 FloatArray = NDArray[np.float64]
 
@@ -307,24 +307,30 @@ def _write_outputs(runs: Runs, out_dir: Path, seeds: int, steps: int | None) -> 
 
 
 def run_study(
-    seeds: int, out_dir: Path, jobs: int, only: str | None = None, steps: int | None = None
+    seeds: int,
+    out_dir: Path,
+    jobs: int,
+    only: str | None = None,
+    steps: int | None = None,
+    scheduler: str | None = None,
 ) -> Runs:
-    """Run every experiment for seeds 1..seeds, print and write the tables and plots."""
+    """Run every experiment for seeds 1..seeds, print and write the tables and plots.
+
+    The runs go to `jobs` local worker processes, or to the dask scheduler at `scheduler`.
+    """
     experiments = [e for e in ALL if only is None or only in e.scenario]
     if not experiments:
         raise CompanionError(f"--only {only!r} matches no experiment")
     tasks = [(e.scenario, seed) for e in experiments for seed in range(1, seeds + 1)]
     run_plots = out_dir / "runs"
     run_plots.mkdir(parents=True, exist_ok=True)
-    results: dict[tuple[str, int], dict[str, Any]] = {}
-    with ProcessPoolExecutor(max_workers=jobs) as pool, progress_bar("study", "run") as bar:
-        futures = {
-            pool.submit(run_one, name, seed, run_plots if seed == 1 else None, steps): (name, seed)
-            for name, seed in tasks
-        }
-        for done, future in enumerate(as_completed(futures), start=1):
-            results[futures[future]] = future.result()
-            bar.update_to(done, len(tasks))
+    with progress_bar("study", "run") as bar:
+        outputs = run_tasks(
+            run_one,
+            [(name, seed, run_plots if seed == 1 else None, steps) for name, seed in tasks],
+            jobs, scheduler, bar.update_to,
+        )
+    results = dict(zip(tasks, outputs, strict=True))
     runs = Runs({e.scenario: [results[(e.scenario, s)] for s in range(1, seeds + 1)]
                  for e in experiments})
     if len(experiments) == len(ALL):
