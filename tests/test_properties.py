@@ -87,6 +87,10 @@ def filter_specs(draw: st.DrawFn) -> FilterSpec:
         gp_sigma_n=draw(_log_uniform(0.05, 3.0)),
         gp_window=draw(st.integers(2, 12)),
         track_timeout=draw(_log_uniform(0.5, 100.0)),
+        target_speed=draw(st.sampled_from([0.0, 0.3]) | _log_uniform(1e-3, 5.0)),
+        manoeuvre_time=draw(_log_uniform(1.0, 1000.0)),
+        confirm_existence=draw(st.sampled_from([0.99, 1e-6]) | st.floats(1e-6, 0.9999)),
+        drop_existence=draw(st.sampled_from([0.1, 1e-6]) | st.floats(1e-6, 0.9)),
     )
 
 
@@ -301,7 +305,7 @@ def _check_state(state: SatState, params: SatParams, report: StepReport, scan: S
     w = params.tracks.window
     shapes = {
         "ids": (t,), "hits": (t,), "life": (t,), "confirmed": (t,), "born_t_s": (t,),
-        "last_t_s": (t,), "means": (t, d), "covs": (t, d, d), "win_t_s": (t, w),
+        "last_t_s": (t,), "seen_t_s": (t,), "score": (t,), "alone": (t,), "means": (t, d), "covs": (t, d, d), "win_t_s": (t, w),
         "win_xy": (t, w, 2), "win_count": (t,), "gp_mu": (t, 2), "gp_beta": (t, w, 2),
         "gp_ky_inv": (t, w, w),
     }
@@ -311,7 +315,13 @@ def _check_state(state: SatState, params: SatParams, report: StepReport, scan: S
     assert np.all((tracks.ids >= 0) & (tracks.ids < tracks.next_id))
     assert np.all((tracks.win_count >= 0) & (tracks.win_count <= w))
     assert np.all((tracks.hits >= 0) & (tracks.hits <= tracks.life))
-    assert np.array_equal(tracks.confirmed, tracks.hits >= params.tracks.confirm_length)
+    assert np.all(~tracks.confirmed | (tracks.hits >= params.tracks.confirm_length)), (
+        "a confirmed track has confirm_length detections"
+    )
+    assert np.all(~tracks.alone | tracks.confirmed), "only confirmed tracks coast alone"
+    assert np.all(np.isfinite(tracks.score)), "track scores finite"
+    assert np.all((tracks.existence >= 0.0) & (tracks.existence <= 1.0))
+    assert np.all(tracks.born_t_s <= tracks.seen_t_s) and np.all(tracks.seen_t_s <= state.t_s)
     assert np.all(tracks.born_t_s <= tracks.last_t_s) and np.all(tracks.last_t_s <= state.t_s)
     for name in ("means", "win_xy", "gp_mu", "gp_beta", "gp_ky_inv"):
         assert np.all(np.isfinite(getattr(tracks, name))), name
@@ -445,6 +455,7 @@ def _valid_spec() -> FilterSpec:
         max_components=100, motion=MotionModel.GP, process_noise=0.01, birth_weight=1.0,
         birth="adaptive", linear_model="cp", velocity_variance=1.0, gp_sigma_f=2.0,
         gp_lengthscale=40.0, gp_sigma_n=0.3, gp_window=30, track_timeout=30.0,
+        target_speed=0.3, manoeuvre_time=200.0, confirm_existence=0.99, drop_existence=0.1,
     )
 
 

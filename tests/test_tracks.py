@@ -4,10 +4,17 @@ from __future__ import annotations
 
 import numpy as np
 
+from companion.sat.fov import Disk
 from companion.sat.mixture import NO_LABEL, Mixture, make_mixture
-from companion.sat.tracks import TrackLog, TrackParams, Tracks, maintain
+from companion.sat.motion import TargetMotion
+from companion.sat.tracks import Evidence, TrackLog, TrackParams, Tracks, grown_covs, maintain
 
-PARAMS = TrackParams(gate_sq=10.0, confirm_length=3, timeout_s=5.0, window=4)
+# Stationary targets: a track's uncertainty does not grow with the time it is unseen.
+PARAMS = TrackParams(gate_sq=10.0, confirm_length=3, timeout_s=5.0, window=4,
+                     motion=TargetMotion(0.0))
+WALKERS = TrackParams(gate_sq=10.0, confirm_length=3, timeout_s=5.0, window=4,
+                      motion=TargetMotion(0.5, 100.0))
+NONE = np.zeros(0, dtype=np.int64)
 
 
 def _mix(xy: list[list[float]], weights: list[float], labels: list[int] | None = None) -> Mixture:
@@ -128,3 +135,89 @@ def test_log_views_are_immutable() -> None:
     assert a.history(1)[0].tolist() == [0.0]
     assert b.history(1)[0].tolist() == [0.0, 1.0]
     assert c.history(1)[0].tolist() == [0.0, 2.0]
+
+
+def _confirmed_walker() -> tuple[Tracks, Mixture]:
+    """One confirmed track of a walker at the origin, seen at t = 0, 1, 2 (no frame evidence)."""
+    tracks = Tracks.empty(2, WALKERS.window)
+    labelled = _mix([[0.0, 0.0]], [1.0])
+    for t in (0.0, 1.0, 2.0):
+        frame = Mixture(labelled.weights, labelled.means, labelled.covs, labelled.labels)
+        tracks, labelled = maintain(tracks, frame, np.array([0]), np.array([True]), t, WALKERS)
+    assert tracks.confirmed.tolist() == [True]
+    return tracks, labelled
+
+
+def _evidence(centre_xy: list[float], radius_m: float, clutter_per_m2: float = 1e-5) -> Evidence:
+    return Evidence(Disk(np.array(centre_xy), radius_m), 0.98, clutter_per_m2, np.eye(2))
+
+
+def test_an_unseen_movers_track_coasts_alone_with_a_growing_honest_covariance() -> None:
+    tracks, _ = _confirmed_walker()
+    motion = WALKERS.motion
+    far = _evidence([500.0, 500.0], 20.0)  # frames that look elsewhere say nothing of it
+    existence = tracks.existence[0]
+    for t in (3.0, 10.0, 100.0, 400.0):
+        tracks, _ = maintain(tracks, Mixture.empty(), NONE, np.zeros(0, dtype=bool), t, WALKERS,
+                             far)
+        assert tracks.ids.tolist() == [0], "out of view is not evidence: no timeout for movers"
+        assert tracks.alone.tolist() == [True]
+        assert tracks.existence[0] == existence
+        var = grown_covs(tracks, t, motion)[0, 0, 0]
+        # the component's 0.25 m^2 plus the integrated-OU displacement variance since t = 2 s
+        np.testing.assert_allclose(var, 0.25 + motion.displacement_var_m2(t - 2.0), rtol=1e-9)
+    assert grown_covs(tracks, 400.0, motion)[0, 0, 0] > 1000.0  # ~ 2 sigma_v^2 tau_c tau
+
+
+def test_misses_in_view_end_a_coasting_track_and_a_redetection_continues_it() -> None:
+    tracks, _ = _confirmed_walker()
+    # 60 s unseen, then frames over its whole uncertainty miss it: r = 0.99 falls to 0.66 after
+    # one (Bayes: r (1 - p_D) / (1 - r p_D)), and below 0.1 after two, which ends the track.
+    seen, _ = maintain(tracks, Mixture.empty(), NONE, np.zeros(0, dtype=bool), 62.0, WALKERS)
+    sd = float(np.sqrt(grown_covs(seen, 62.0, WALKERS.motion)[0, 0, 0]))
+    whole = _evidence([0.0, 0.0], 6.0 * sd)
+    once, _ = maintain(seen, Mixture.empty(), NONE, np.zeros(0, dtype=bool), 63.0, WALKERS, whole)
+    np.testing.assert_allclose(once.existence, [0.99 * 0.02 / (1.0 - 0.99 * 0.98)], rtol=1e-6)
+    gone, _ = maintain(once, Mixture.empty(), NONE, np.zeros(0, dtype=bool), 64.0, WALKERS, whole)
+    assert gone.size == 0, "misses over the whole of it end the track"
+    # A frame over half of it: the Gaussian moves away from what was seen, the track lives on.
+    half, _ = maintain(seen, Mixture.empty(), NONE, np.zeros(0, dtype=bool), 63.0, WALKERS,
+                       _evidence([-3.0 * sd, 0.0], 3.0 * sd))
+    assert half.ids.tolist() == [0]
+    assert half.means[0, 0] > 0.3 * sd
+    assert 0.1 < half.existence[0] < seen.existence[0]
+    # The walker is re-detected 15 m away, far outside its last component's gate but inside its
+    # grown one: the estimate continues the same track rather than starting another.
+    found = _mix([[15.0, 0.0]], [0.9])
+    again, labelled = maintain(seen, found, np.array([0]), np.array([True]), 63.0, WALKERS)
+    assert again.ids.tolist() == [0]
+    assert labelled.labels.tolist() == [0]
+    assert again.alone.tolist() == [False]
+    assert again.seen_t_s.tolist() == [63.0]
+
+
+def test_clutter_cannot_confirm_a_track_that_the_frames_do_not_support() -> None:
+    """Three detections confirm a track when false alarms are rare, not in heavy clutter."""
+    def three_hits(clutter_per_m2: float, weight: float) -> Tracks:
+        tracks = Tracks.empty(2, PARAMS.window)
+        labelled = _mix([[0.0, 0.0]], [weight])
+        for t in (0.0, 1.0, 2.0):
+            frame = Mixture(labelled.weights, labelled.means, labelled.covs, labelled.labels)
+            tracks, labelled = maintain(tracks, frame, np.array([0]), np.array([True]), t,
+                                        PARAMS, _evidence([0.0, 0.0], 25.0, clutter_per_m2))
+        return tracks
+
+    assert three_hits(1e-5, 0.6).confirmed.tolist() == [True]
+    assert three_hits(1e-2, 0.6).confirmed.tolist() == [False]
+
+
+def test_a_miss_in_view_counts_against_a_track_and_one_out_of_view_does_not() -> None:
+    tracks, labelled = _run([_mix([[0.0, 0.0]], [1.0])] * 3)
+    before = float(tracks.score[0])
+    light = Mixture(np.array([0.3]), labelled.means, labelled.covs, labelled.labels)
+    out, _ = maintain(tracks, light, NONE, np.array([False]), 3.0, PARAMS,
+                      _evidence([100.0, 0.0], 20.0))
+    assert out.score[0] == before
+    seen, _ = maintain(tracks, light, NONE, np.array([False]), 3.0, PARAMS,
+                       _evidence([0.0, 0.0], 20.0))
+    np.testing.assert_allclose(seen.score[0], before + np.log(1.0 - 0.98), rtol=1e-6)

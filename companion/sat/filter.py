@@ -22,7 +22,7 @@ from companion.sat.linalg import spd_2x2_faults
 from companion.sat.mixture import Mixture
 from companion.sat.predict import LinearModel, apply_gp, predict_linear, transition
 from companion.sat.reduce import merge, prune
-from companion.sat.tracks import TrackParams, Tracks, maintain
+from companion.sat.tracks import Evidence, TrackParams, Tracks, maintain
 from companion.sat.update import PushMode, PushRule, detection, no_detection, visibility
 
 FloatArray = NDArray[np.float64]
@@ -254,8 +254,9 @@ def step(
 
     est_index = extract(reduced, params.extract_weight)
     est_rows = np.flatnonzero(reduced.weights > params.extract_weight)
+    evidence = None if region is None else Evidence(region, params.p_detect, clutter, r_cov)
     tracks, labelled = maintain(
-        state.tracks, reduced, est_rows, detected_reduced, scan.t_s, params.tracks
+        state.tracks, reduced, est_rows, detected_reduced, scan.t_s, params.tracks, evidence
     )
     # Only confirmed tracks are predicted by their GP: refit the windows that just changed.
     fresh = np.flatnonzero(

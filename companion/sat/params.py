@@ -16,6 +16,7 @@ from companion.keys import Bool, Choice, Float, Int, Key, Pair
 from companion.sat.birth import BirthWeight
 from companion.sat.filter import SatParams
 from companion.sat.gp import GpParams
+from companion.sat.motion import TargetMotion
 from companion.sat.predict import LinearModel
 from companion.sat.tracks import TrackParams
 from companion.sat.update import PushMode, PushRule
@@ -62,9 +63,15 @@ class FilterSpec:
     gp_sigma_n: float  # m
     gp_window: int  # points
     track_timeout: float  # s
+    target_speed: float  # m/s
+    manoeuvre_time: float  # s
+    confirm_existence: float
+    drop_existence: float
 
 
 _GP = GpParams()
+_MOTION = TargetMotion()
+_TRACKS = TrackParams()
 
 FILTER_KEYS: tuple[Key, ...] = (
     Key("p_survive", Float(ge=0, le=1), 1.0, "survival probability p_S"),
@@ -107,6 +114,16 @@ FILTER_KEYS: tuple[Key, ...] = (
         "a track's most recent detected positions the GP regresses on", project=True),
     Key("track_timeout", Float(gt=0), 30.0,
         "seconds without support before a confirmed track ends", project=True),
+    Key("target_speed", Float(ge=0, le=100), _MOTION.speed_m_s,
+        "typical ground speed of the targets, m/s (0: stationary): how fast an unseen "
+        "track's uncertainty grows", project=True),
+    Key("manoeuvre_time", Float(gt=0), _MOTION.manoeuvre_s,
+        "typical time between the targets' changes of heading, seconds", project=True),
+    Key("confirm_existence", Float(gt=0, le=0.9999), _TRACKS.confirm_existence,
+        "existence probability a track needs, besides confirm_length detections, to be "
+        "confirmed (its score: detections for, misses in view against)", project=True),
+    Key("drop_existence", Float(gt=0, le=0.9999), _TRACKS.drop_existence,
+        "existence probability below which a track ends", project=True),
 )
 
 
@@ -128,5 +145,7 @@ def sat_params(f: FilterSpec, p_detect: float, clutter_per_scan: float, dt_s: fl
         birth_weight=f.birth_weight,
         velocity_var_m2_s2=f.velocity_variance,
         gp=GpParams(f.gp_sigma_f, f.gp_lengthscale, f.gp_sigma_n, f.gp_window),
-        tracks=TrackParams(f.merge_distance, f.confirm_length, f.track_timeout, f.gp_window),
+        tracks=TrackParams(f.merge_distance, f.confirm_length, f.track_timeout, f.gp_window,
+                           TargetMotion(f.target_speed, f.manoeuvre_time),
+                           f.confirm_existence, f.drop_existence),
     )

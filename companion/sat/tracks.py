@@ -5,23 +5,40 @@ label through prediction, update and merging. Each step, an estimate continues t
 component is labelled with (the GM-PHD's own association); an unlabelled estimate continues an
 unclaimed track it gates with (squared Mahalanobis distance <= the merge threshold U); a second
 estimate of one lineage (a split) and an estimate that gates with no track start new tracks. A
-track is confirmed once `confirm_length` steps have supported it with a detection; out of view is
-not gone: a confirmed track whose labelled component still survives in the mixture is held by
-it, and a confirmed track ends only when nothing has supported it for `timeout_s`. A tentative
-track ends at its first unsupported step. Each track keeps its history (time, mean, covariance)
-in an append-only log.
+track is confirmed once `confirm_length` steps have supported it with a detection and its
+existence (below) is high; out of view is not gone: a confirmed track whose labelled component
+still survives in the mixture is held by it, and a confirmed track ends when nothing has supported
+it for `timeout_s` or when what the sensor saw makes it unlikely to exist. A tentative track ends
+at its first unsupported step. Each track keeps its history (time, mean, covariance) in an
+append-only log.
+
+Evidence (a sequential likelihood-ratio test per track, Blackman & Popoli 1999, Sec. 6.2): each
+step with a frame adds to the track's log-likelihood ratio of existence
+
+    detected:  log(p_D / p_FA),   p_FA = min(1/2, kappa A_gate)           # Eq. track_score_hit
+    missed:    log(1 - p_D p(F))                                           # Eq. track_score_miss
+
+where kappa is the clutter density, A_gate the area of the track's gate and p(F) the mass of
+the track's Gaussian in the frame's footprint: a miss in view counts against the track, one out
+of view (p(F) = 0) does not. A track's covariance is that of the component supporting it plus
+the displacement variance of the targets' motion class since its last detection
+(companion.sat.motion), so that a track coasting unseen says honestly how far its target may
+have gone, and a re-detected mover gates with its own grown track instead of starting another.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.sat.fov import Region, prob_in_region, truncation_moments
 from companion.sat.gp import GpFit, GpPredictor
 from companion.sat.linalg import inv_det_2x2
 from companion.sat.mixture import NO_LABEL, Mixture
+from companion.sat.motion import TargetMotion, iou_variance_m2
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -30,12 +47,30 @@ BoolArray = NDArray[np.bool_]
 
 @dataclass(frozen=True, slots=True)
 class TrackParams:
-    """Association gate, confirmation length, end-of-track timeout and GP window length."""
+    """Association gate, confirmation, ending, GP window length and the targets' motion class."""
 
     gate_sq: float = 10.0
     confirm_length: int = 3
     timeout_s: float = 30.0
     window: int = 30
+    motion: TargetMotion = field(default_factory=TargetMotion)
+    confirm_existence: float = 0.99  # existence a track needs to be confirmed
+    drop_existence: float = 0.1  # existence below which a track ends
+    max_existence: float = 0.9999  # cap, so that misses in view can end a long-seen track
+
+
+@dataclass(frozen=True, slots=True)
+class Evidence:
+    """What the sensor could say this step: its footprint, p(D|F), clutter density and R."""
+
+    region: Region
+    p_detect: float
+    clutter_per_m2: float
+    r_cov: FloatArray
+
+
+def _logit(p: float) -> float:
+    return math.log(p / (1.0 - p))
 
 
 class _LogBuffer:
@@ -103,8 +138,11 @@ class Tracks:
     confirmed: BoolArray  # (T,)
     born_t_s: FloatArray  # (T,)
     last_t_s: FloatArray  # (T,) time of the last support
+    seen_t_s: FloatArray  # (T,) time of the last detection (its birth, if never detected)
+    score: FloatArray  # (T,) log-likelihood ratio of existence (Eq. track_score_*)
+    alone: BoolArray  # (T,) coasting with no component: means/covs are its own belief
     means: FloatArray  # (T, d) state at the last support
-    covs: FloatArray  # (T, d, d)
+    covs: FloatArray  # (T, d, d) of the supporting component at last_t_s (see grown_covs)
     win_t_s: FloatArray  # (T, W) times of the most recent detections, right-aligned
     win_xy: FloatArray  # (T, W, 2) positions at those detections, right-aligned
     win_count: IntArray  # (T,) valid entries at the right of the window
@@ -129,6 +167,9 @@ class Tracks:
             confirmed=np.zeros(0, dtype=bool),
             born_t_s=np.zeros(0),
             last_t_s=np.zeros(0),
+            seen_t_s=np.zeros(0),
+            score=np.zeros(0),
+            alone=np.zeros(0, dtype=bool),
             means=np.zeros((0, dim)),
             covs=np.zeros((0, dim, dim)),
             win_t_s=np.zeros((0, window)),
@@ -139,6 +180,17 @@ class Tracks:
             gp_ky_inv=np.zeros((0, window, window)),
             log=TrackLog.empty(dim),
         )
+
+    @property
+    def existence(self) -> FloatArray:
+        """(T,) probability that each track's target exists, from its score."""
+        result: FloatArray = 1.0 / (1.0 + np.exp(-self.score))
+        return result
+
+    def coasting(self, t_s: float, after_s: float) -> BoolArray:
+        """(T,) tracks not detected for more than after_s seconds at t_s: on prediction alone."""
+        result: BoolArray = t_s - self.seen_t_s > after_s
+        return result
 
     def gp_fit(self) -> GpFit:
         """The GP fit of every track's window (a view, no copy)."""
@@ -211,6 +263,71 @@ def _associate(
     return assigned
 
 
+def grown_covs(tracks: Tracks, t_s: float, motion: TargetMotion) -> FloatArray:
+    """(T, d, d) each track's honest covariance at t_s (Eq. iou_variance on the position block).
+
+    A track supported by a component: that component's covariance plus the motion class's
+    displacement variance since the last detection. A track coasting alone: its own belief at
+    last_t_s, grown by the increase of that variance since.
+    """
+    if tracks.size == 0 or motion.speed_m_s == 0.0:
+        return tracks.covs
+    sv2, tau_c = motion.velocity_var_m2_s2, motion.correlation_s
+    growth = [
+        iou_variance_m2(sv2, tau_c, t_s - seen)
+        - (iou_variance_m2(sv2, tau_c, last - seen) if alone else 0.0)
+        for seen, last, alone in zip(
+            tracks.seen_t_s.tolist(), tracks.last_t_s.tolist(), tracks.alone.tolist(),
+            strict=True,
+        )
+    ]
+    covs = tracks.covs.copy()
+    covs[:, 0, 0] += growth
+    covs[:, 1, 1] += growth
+    return covs
+
+
+def _gating_view(tracks: Tracks, t_s: float, motion: TargetMotion) -> Tracks:
+    """The tracks with the honest covariance for those coasting alone, for association."""
+    if not tracks.alone.any():
+        return tracks
+    covs = np.where(tracks.alone[:, None, None], grown_covs(tracks, t_s, motion), tracks.covs)
+    return replace(tracks, covs=covs)
+
+
+def _coast(
+    tracks: Tracks, rows: IntArray, t_s: float, params: TrackParams, evidence: Evidence | None
+) -> Tracks:
+    """Confirmed tracks with no component coast alone on their honest Gaussian.
+
+    A frame that does not see the target updates that Gaussian as the no-detection update does
+    a component: the moments of (1 - p_D 1_F(x)) N(x; m, P), and scores the miss.
+    """
+    if rows.size == 0:
+        return tracks
+    means = tracks.means.copy()
+    covs = tracks.covs.copy()
+    score = tracks.score.copy()
+    honest = grown_covs(tracks, t_s, params.motion)[rows]
+    if evidence is not None:
+        p_d = evidence.p_detect
+        mass, moment, second = truncation_moments(
+            means[rows, :2], honest[:, :2, :2], evidence.region, check=False
+        )
+        kept = 1.0 - p_d * np.minimum(mass, 1.0 - 1e-12)  # Eq. track_score_miss
+        shift = -p_d * moment / kept[:, None]
+        pos = (honest[:, :2, :2] - p_d * second) / kept[:, None, None]
+        honest[:, :2, :2] = pos - shift[:, :, None] * shift[:, None, :]
+        means[rows, :2] += shift
+        score[rows] += np.log(kept)
+    covs[rows] = honest
+    last_t = tracks.last_t_s.copy()
+    last_t[rows] = t_s
+    alone = tracks.alone.copy()
+    alone[rows] = True
+    return replace(tracks, means=means, covs=covs, score=score, last_t_s=last_t, alone=alone)
+
+
 def maintain(
     tracks: Tracks,
     mix: Mixture,
@@ -218,6 +335,7 @@ def maintain(
     detected: BoolArray,
     t_s: float,
     params: TrackParams,
+    evidence: Evidence | None = None,
 ) -> tuple[Tracks, Mixture]:
     """Associate this step's estimates with the tracks; returns the tracks and relabelled mixture.
 
@@ -225,10 +343,12 @@ def maintain(
     round(w) targets in Layer 2, but in Layer 3 it supports one track, since copies of one
     estimate cannot be told apart; when its targets separate, the mixture holds two components
     and the second starts a new track: the split. `detected[i]` says whether component i owes
-    its weight to a detection this step.
+    its weight to a detection this step. `evidence` is what the frame could see (None: a blind
+    step, which scores nothing).
     """
     assigned = _associate(
-        tracks, mix.labels[est_rows], mix.means[est_rows], mix.covs[est_rows], params.gate_sq
+        _gating_view(tracks, t_s, params.motion), mix.labels[est_rows], mix.means[est_rows],
+        mix.covs[est_rows], params.gate_sq,
     )
     has_estimate = assigned >= 0
     supported_by = np.full(tracks.size, -1, dtype=np.int64)  # mixture row supporting each track
@@ -246,8 +366,14 @@ def maintain(
     hit[assigned[has_estimate]] = detected[est_rows[has_estimate]]
 
     supported = supported_by >= 0
-    updated = _support(tracks, supported, supported_by, hit, mix, t_s, params)
-    alive = supported | (tracks.confirmed & (t_s - tracks.last_t_s <= params.timeout_s))
+    updated = _support(tracks, supported, supported_by, hit, mix, t_s, params, evidence)
+    # A moving target's confirmed track that nothing supports coasts on its growing uncertainty
+    # until the frames refute it; a stationary one's ends after the timeout.
+    coasting = ~supported & tracks.confirmed & (params.motion.speed_m_s > 0.0)
+    updated = _coast(updated, np.flatnonzero(coasting), t_s, params, evidence)
+    alive = (
+        supported | coasting | (tracks.confirmed & (t_s - tracks.last_t_s <= params.timeout_s))
+    ) & (updated.score >= _logit(params.drop_existence))
     survivors = updated if alive.all() else updated.take(alive)
     new_rows = est_rows[~has_estimate]
     labels = np.full(mix.size, NO_LABEL, dtype=np.int64)
@@ -260,6 +386,38 @@ def maintain(
     return _concat(survivors, born), Mixture(mix.weights, mix.means, mix.covs, labels)
 
 
+def _scores(
+    tracks: Tracks,
+    rows: IntArray,
+    comp: IntArray,
+    hit: BoolArray,
+    mix: Mixture,
+    params: TrackParams,
+    evidence: Evidence | None,
+) -> FloatArray:
+    """The tracks' scores after this step's evidence (Eqs. track_score_hit, track_score_miss).
+
+    Rows supported by a component are scored with that component's Gaussian: a detection adds
+    log(p_D / p_FA), a miss log(1 - p_D p(F)); unsupported rows and blind steps score nothing.
+    """
+    score = tracks.score.copy()
+    if evidence is None or rows.size == 0:
+        return score
+    cov_xy = mix.covs[comp, :2, :2]
+    p_in = prob_in_region(mix.means[comp, :2], cov_xy, evidence.region, check=False)
+    _, det_s = inv_det_2x2(cov_xy + evidence.r_cov)
+    gate_area_m2 = math.pi * params.gate_sq * np.sqrt(det_s)  # area of d^2 <= U under P + R
+    p_fa = np.minimum(0.5, evidence.clutter_per_m2 * gate_area_m2)
+    p_d = evidence.p_detect
+    delta = np.where(
+        hit[rows],
+        np.log(max(p_d, 1e-300) / np.maximum(p_fa, 1e-300)),  # Eq. track_score_hit
+        np.log1p(-np.minimum(p_d * p_in, 1.0 - 1e-12)),  # Eq. track_score_miss
+    )
+    score[rows] = np.minimum(score[rows] + delta, _logit(params.max_existence))
+    return score
+
+
 def _support(
     tracks: Tracks,
     supported: BoolArray,
@@ -268,17 +426,20 @@ def _support(
     mix: Mixture,
     t_s: float,
     params: TrackParams,
+    evidence: Evidence | None,
 ) -> Tracks:
-    """The tracks with this step's support applied to the supported rows."""
+    """The tracks with this step's support and evidence applied to the supported rows."""
     rows = np.flatnonzero(supported)
     if rows.size == 0:
         return tracks
     comp = supported_by[rows]
+    seen_t = np.where(hit, t_s, tracks.seen_t_s)
     means = tracks.means.copy()
     covs = tracks.covs.copy()
     means[rows] = mix.means[comp]
     covs[rows] = mix.covs[comp]
     hits = tracks.hits + hit
+    score = _scores(tracks, rows, comp, hit, mix, params, evidence)
     # The GP window holds detected positions only: a coasting track's own predictions would feed
     # back into its next prediction.
     seen = np.flatnonzero(hit)
@@ -292,13 +453,17 @@ def _support(
         win_count = np.minimum(win_count + hit, params.window)
     last_t = tracks.last_t_s.copy()
     last_t[rows] = t_s
+    confirm = (hits >= params.confirm_length) & (score >= _logit(params.confirm_existence))
     return Tracks(
         ids=tracks.ids,
         hits=hits,
         life=tracks.life + supported,
-        confirmed=tracks.confirmed | (hits >= params.confirm_length),
+        confirmed=tracks.confirmed | confirm,
         born_t_s=tracks.born_t_s,
         last_t_s=last_t,
+        seen_t_s=seen_t,
+        score=score,
+        alone=tracks.alone & ~supported,
         means=means,
         covs=covs,
         win_t_s=win_t,
@@ -307,7 +472,7 @@ def _support(
         gp_mu=tracks.gp_mu,
         gp_beta=tracks.gp_beta,
         gp_ky_inv=tracks.gp_ky_inv,
-        log=tracks.log.append(tracks.ids[rows], t_s, mix.means[comp], mix.covs[comp]),
+        log=tracks.log.append(tracks.ids[rows], t_s, means[rows], covs[rows]),
         next_id=tracks.next_id,
     )
 
@@ -320,7 +485,10 @@ def _new_tracks(
     t_s: float,
     params: TrackParams,
 ) -> Tracks:
-    """One new tentative track per unassigned estimate (component rows `comp`), with fresh ids."""
+    """One new tentative track per unassigned estimate (component rows `comp`), with fresh ids.
+
+    Its score starts at the logit of its component's weight, the PHD's own belief in it.
+    """
     k = comp.shape[0]
     ids = tracks.next_id + np.arange(k, dtype=np.int64)
     hits = hit.astype(np.int64)
@@ -328,13 +496,18 @@ def _new_tracks(
     win_xy = np.zeros((k, params.window, 2))
     win_t[:, -1] = t_s
     win_xy[:, -1] = mix.means[comp, :2]  # only counted (win_count) when it is a detection
+    w = np.clip(mix.weights[comp], 0.01, 0.99)
+    score = np.log(w / (1.0 - w))
     return Tracks(
         ids=ids,
         hits=hits,
         life=np.ones(k, dtype=np.int64),
-        confirmed=hits >= params.confirm_length,
+        confirmed=(hits >= params.confirm_length) & (score >= _logit(params.confirm_existence)),
         born_t_s=np.full(k, t_s),
         last_t_s=np.full(k, t_s),
+        seen_t_s=np.full(k, t_s),
+        score=score,
+        alone=np.zeros(k, dtype=bool),
         means=mix.means[comp],
         covs=mix.covs[comp],
         win_t_s=win_t,

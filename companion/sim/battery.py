@@ -4,8 +4,8 @@ A family is a named generator `seed -> Scenario`: it writes the scenario as TOML
 it through the scenario parser, so every rule and default of a scenario file applies. Every
 family flies the lawn mower at 1 m/s over a 100 m x 100 m world with 5-10 targets drawn from the
 seed; the [filter] table is left at its defaults but for the sensor's own model (which the
-simulation passes from [sensor]) and the hint `target_speed` (the family's target speed, when
-the filter has that key). A variant is a named set of [filter] overrides on top of that.
+simulation passes from [sensor]) and the hint `target_speed` (the family's target speed). A
+variant is a named set of [filter] overrides on top of that.
 
 `run_battery` runs families x variants x seeds 1..N on the execution engine (local processes or a
 dask cluster), prints one Markdown table per family with the variants side by side, and writes
@@ -30,7 +30,6 @@ from numpy.typing import NDArray
 
 from companion.errors import ConfigError
 from companion.progress import progress_bar
-from companion.sat.params import FILTER_KEYS
 from companion.sim.engine import check_scheduler_address, run_tasks
 from companion.sim.footprint import camera_footprint_xy
 from companion.sim.scenario import Scenario, parse_scenario
@@ -53,7 +52,9 @@ ScenarioData = dict[str, Any]
 # Overrides of [filter] per variant, applied on top of every family's scenario.
 VARIANTS: dict[str, dict[str, Any]] = {
     "defaults": {},
-    "round-1": {},  # filled in with the estimator's new keys
+    # The previous release's estimator: no motion class (a track's uncertainty saturates with
+    # the GP's), confirmation by detections alone and no ending by evidence.
+    "round-1": {"target_speed": 0.0, "confirm_existence": 1e-6, "drop_existence": 1e-6},
 }
 TIMING_COLUMNS = ("wall_s", "filter_s", "step_ms_median", "step_ms_p95")
 ID_COLUMNS = ("family", "seed", "variant", "filter_kind", "planner")
@@ -283,17 +284,12 @@ def format_family_list() -> str:
     return "".join(f"{f.name:<{width}}  {f.description}\n" for f in FAMILIES.values())
 
 
-def _filter_keys() -> frozenset[str]:
-    return frozenset(k.leaf for k in FILTER_KEYS)
-
-
 def family_scenario(family: str, seed: int, variant: str = "defaults") -> Scenario:
     """The family's scenario for a seed with a variant's [filter] overrides; ConfigError if bad."""
     fam = _known(family, FAMILIES, "--families")
     overrides = _known(variant, VARIANTS, "--variants")
     data = fam.build(seed)
-    hint = {"target_speed": fam.target_speed_m_s} if "target_speed" in _filter_keys() else {}
-    data["filter"] = {**data["filter"], **hint, **overrides}
+    data["filter"] = {**data["filter"], "target_speed": fam.target_speed_m_s, **overrides}
     return parse_scenario(data, name=fam.name)
 
 

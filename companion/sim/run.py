@@ -33,6 +33,7 @@ from companion.sat.filter import SatParams, SatState, Scan, initial_state, step
 from companion.sat.fov import ConvexPolygon, Disk, Region
 from companion.sat.gp import GpPredictor
 from companion.sat.params import FovKind, sat_params
+from companion.sat.tracks import grown_covs
 from companion.sim.belief import initial_belief
 from companion.sim.scenario import Scenario
 from companion.sim.sensor import SensorModel, sense
@@ -131,10 +132,9 @@ class SimResult:
         """The JSON object of the `simulate --json` contract."""
         state = self.final_state
         confirmed = state.tracks.confirmed
+        covs = grown_covs(state.tracks, state.t_s, filter_params(self.scenario).tracks.motion)
         closest, second = mahalanobis_to_tracks(
-            self.final_truth_xy,
-            state.tracks.means[confirmed, :2],
-            state.tracks.covs[confirmed, :2, :2],
+            self.final_truth_xy, state.tracks.means[confirmed, :2], covs[confirmed, :2, :2]
         )
         k = self.t_s.size
         tail = slice(k - max(1, k // 5), None)  # the last 20 % of steps
@@ -243,10 +243,11 @@ def simulate(s: Scenario, progress: Progress | None = None) -> SimResult:
         tracks = state.tracks
         conf = tracks.confirmed
         truth_xy = truth.alive_xy
-        conf_xy, conf_covs = tracks.means[conf, :2], tracks.covs[conf, :2, :2]
+        covs = grown_covs(tracks, t_s, params.tracks.motion)
+        conf_xy, conf_covs = tracks.means[conf, :2], covs[conf, :2, :2]
         closest, second = mahalanobis_to_tracks(truth_xy, conf_xy, conf_covs)
         mahal = summarize_mahalanobis(closest, second)
-        var = tracks.covs[conf][:, [0, 1], [0, 1]]
+        var = covs[conf][:, [0, 1], [0, 1]]
         series["t"].append(t_s)
         series["true"].append(truth_xy.shape[0])
         series["conf"].append(int(conf.sum()))
