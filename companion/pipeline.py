@@ -309,4 +309,6 @@ class Pipeline:
             r_cov_m2=np.asarray(scan.r_cov), components=self.state.mixture.size,
             weight_sum=float(self.state.mixture.total_weight),
             confirmed=int(tracks.confirmed.sum()),
-            extra={"confirmed_ids": tracks.ids[tracks.confirmed].tolist()})
+            extra={"confirmed_ids": tracks.ids[tracks.confirmed].tolist(),
+                   "coasting_ids": tracks.ids[tracks.confirmed & tracks.coasting(
+                       t_s, self.params.tracks.coast_after_s)].tolist()})

@@ -134,7 +134,8 @@ class _Replay:
         self.folder.close()
         out, frame, state = self.out_dir, self.pipeline.frame, self.pipeline.state
         tracks = [] if state is None else confirmed_tracks(
-            state.tracks, frame.origin_utm_m, frame.utm.epsg, frame.to_latlon)
+            state.tracks, frame.origin_utm_m, frame.utm.epsg, frame.to_latlon, state.t_s,
+            self.pipeline.params.tracks)
         tracks_en = np.array([[t.easting_m, t.northing_m] for t in tracks]).reshape(-1, 2)
         targets = 0 if self.truth_xy is None else len(self.truth_xy)
         mahal = np.array(self.mahalanobis, dtype=np.float64).reshape(len(self.t_s), targets)

@@ -1,8 +1,9 @@
 """The confirmed tracks as a ground station or GIS reads them, and scored against the truth.
 
 `confirmed_tracks` turns the estimator's tracks into plain records (id, lat/lon, UTM,
-covariance, first/last seen). `write_geojson` and `write_csv` write them. `score` matches them
-to true positions and gives each target's error, the missed targets and the false tracks.
+covariance, first/last seen, last detected, coasting). `write_geojson` and `write_csv` write
+them. `score` matches them to true positions and gives each target's error, the missed
+targets and the false tracks.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
-from companion.sat.tracks import Tracks
+from companion.sat.tracks import TrackParams, Tracks, grown_covs
 
 __all__ = ["Score", "TrackRecord", "confirmed_tracks", "score", "write_csv", "write_geojson"]
 
@@ -38,20 +39,26 @@ class TrackRecord:
     cov_en_m2: float
     cov_nn_m2: float
     first_seen_s: float
-    last_seen_s: float
+    last_seen_s: float  # last step that supported the track
+    last_detected_s: float  # last detection of its target
+    coasting: bool  # not detected for more than filter.coast_after: on prediction alone
 
 
 def confirmed_tracks(tracks: Tracks, origin_utm_m: FloatArray, utm_epsg: int,
-                     to_latlon: Any) -> list[TrackRecord]:
-    """The confirmed tracks; means are in the search frame (UTM minus origin_utm_m)."""
+                     to_latlon: Any, t_s: float, params: TrackParams) -> list[TrackRecord]:
+    """The confirmed tracks at t_s with their honest covariances (tracks.grown_covs); means are
+    in the search frame (UTM minus origin_utm_m)."""
+    covs = grown_covs(tracks, t_s, params.motion)
+    coasting = tracks.coasting(t_s, params.coast_after_s)
     out = []
     for i in np.flatnonzero(tracks.confirmed):
         e, n = (tracks.means[i, :2] + origin_utm_m).tolist()
         lat, lon = to_latlon(tracks.means[i, :2][None])[0].tolist()
-        c = tracks.covs[i, :2, :2]
+        c = covs[i, :2, :2]
         out.append(TrackRecord(int(tracks.ids[i]), lat, lon, e, n, utm_epsg, float(c[0, 0]),
                                float(c[0, 1]), float(c[1, 1]), float(tracks.born_t_s[i]),
-                               float(tracks.last_t_s[i])))
+                               float(tracks.last_t_s[i]), float(tracks.seen_t_s[i]),
+                               bool(coasting[i])))
     return out
 
 

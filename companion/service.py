@@ -575,7 +575,8 @@ class Service:
     def _write_reports(self, folder: RunFolder) -> list[TrackRecord]:
         state, frame = self.pipeline.state, self.pipeline.frame
         records = [] if state is None else confirmed_tracks(
-            state.tracks, frame.origin_utm_m, frame.utm.epsg, frame.to_latlon)
+            state.tracks, frame.origin_utm_m, frame.utm.epsg, frame.to_latlon, state.t_s,
+            self.pipeline.params.tracks)
         summary = {"state": self.mission.state.value, "confirmed": len(records),
                    "counters": self.counters, "utm_epsg": frame.utm.epsg,
                    "tracks": [r.id for r in records]}

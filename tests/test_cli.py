@@ -18,7 +18,7 @@ CONTRACT_KEYS = {
     "tracks_confirmed", "weight_sum", "components", "mahal_closest_mean", "mahal_closest_std",
     "mahal_second_mean", "ospa_mean", "ospa_tail_mean", "ospa_final",
     "gospa_final", "gospa_tail_mean", "gospa_localisation_final", "gospa_missed_final",
-    "gospa_false_final", "nees_mean", "t_all_confirmed_s",
+    "gospa_false_final", "nees_mean", "t_all_confirmed_s", "tracks_coasting",
 }
 
 SHORT = """
@@ -62,6 +62,7 @@ def test_simulate_json_prints_exactly_the_contract_object(
         assert isinstance(summary[key], float) and summary[key] >= 0.0
     for key in ("gospa_missed_final", "gospa_false_final"):
         assert type(summary[key]) is int and summary[key] >= 0
+    assert 0 <= summary["tracks_coasting"] <= summary["tracks_confirmed"]
     for key in ("nees_mean", "t_all_confirmed_s"):  # null when never defined
         assert summary[key] is None or (isinstance(summary[key], float) and summary[key] >= 0.0)
 

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import pytest
 
 from companion.errors import InputError
 from companion.sat.motion import TargetMotion
+from companion.sat.params import FILTER_KEYS, FilterSpec, sat_params
 
 
 def test_displacement_is_ballistic_at_first_and_diffusive_later() -> None:
@@ -51,3 +54,16 @@ def test_stationary_targets_do_not_move() -> None:
 def test_bad_motion_class_is_refused(speed: float, manoeuvre: float) -> None:
     with pytest.raises(InputError):
         TargetMotion(speed, manoeuvre)
+
+
+def test_the_linear_models_noise_follows_the_motion_class() -> None:
+    defaults: dict[str, Any] = {key.field: key.default for key in FILTER_KEYS}
+    spec = FilterSpec(**defaults)
+    still = sat_params(replace(spec, target_speed=0.0), 0.98, 0.1, 0.5)
+    assert still.q_m2_per_s == pytest.approx(spec.process_noise / 0.5)
+    runner = sat_params(replace(spec, target_speed=2.0), 0.98, 0.1, 0.5)
+    motion = runner.tracks.motion
+    assert motion == TargetMotion(2.0, spec.manoeuvre_time)
+    # one step's displacement variance, ~ (v^2 / 2) dt^2 = 0.5 m^2, per second of the step
+    assert runner.q_m2_per_s == pytest.approx(motion.displacement_var_m2(0.5) / 0.5)
+    assert runner.q_m2_per_s > 0.9

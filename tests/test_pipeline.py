@@ -106,7 +106,7 @@ def test_reports_of_the_tracks(flown: tuple[Flight, Pipeline, list[float]],
     assert pipeline.state is not None
     frame = pipeline.frame
     records = confirmed_tracks(pipeline.state.tracks, frame.origin_utm_m, frame.utm.epsg,
-                               frame.to_latlon)
+                               frame.to_latlon, pipeline.state.t_s, pipeline.params.tracks)
     assert len(records) == 5
     write_geojson(tmp_path / "t.geojson", records)
     write_csv(tmp_path / "t.csv", records)

@@ -91,6 +91,7 @@ def filter_specs(draw: st.DrawFn) -> FilterSpec:
         manoeuvre_time=draw(_log_uniform(1.0, 1000.0)),
         confirm_existence=draw(st.sampled_from([0.99, 1e-6]) | st.floats(1e-6, 0.9999)),
         drop_existence=draw(st.sampled_from([0.1, 1e-6]) | st.floats(1e-6, 0.9)),
+        coast_after=draw(_log_uniform(0.1, 100.0)),
     )
 
 
@@ -305,7 +306,8 @@ def _check_state(state: SatState, params: SatParams, report: StepReport, scan: S
     w = params.tracks.window
     shapes = {
         "ids": (t,), "hits": (t,), "life": (t,), "confirmed": (t,), "born_t_s": (t,),
-        "last_t_s": (t,), "seen_t_s": (t,), "score": (t,), "alone": (t,), "means": (t, d), "covs": (t, d, d), "win_t_s": (t, w),
+        "last_t_s": (t,), "seen_t_s": (t,), "score": (t,), "alone": (t,), "means": (t, d),
+        "covs": (t, d, d), "win_t_s": (t, w),
         "win_xy": (t, w, 2), "win_count": (t,), "gp_mu": (t, 2), "gp_beta": (t, w, 2),
         "gp_ky_inv": (t, w, w),
     }
@@ -456,6 +458,7 @@ def _valid_spec() -> FilterSpec:
         birth="adaptive", linear_model="cp", velocity_variance=1.0, gp_sigma_f=2.0,
         gp_lengthscale=40.0, gp_sigma_n=0.3, gp_window=30, track_timeout=30.0,
         target_speed=0.3, manoeuvre_time=200.0, confirm_existence=0.99, drop_existence=0.1,
+        coast_after=10.0,
     )
 
 

@@ -64,7 +64,7 @@ def test_a_torn_last_line_ends_the_records_with_a_warning(tmp_path: Path) -> Non
 def _track() -> TrackRecord:
     return TrackRecord(id=7, lat_deg=47.0, lon_deg=8.0, easting_m=1.0, northing_m=2.0,
                        utm_epsg=32632, cov_ee_m2=0.1, cov_en_m2=0.0, cov_nn_m2=0.2,
-                       first_seen_s=1.0, last_seen_s=2.0)
+                       first_seen_s=1.0, last_seen_s=2.0, last_detected_s=2.0, coasting=False)
 
 
 def test_reports_without_plots(tmp_path: Path) -> None:

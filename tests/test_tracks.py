@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
-from companion.sat.fov import Disk
+from companion.sat.fov import ConvexPolygon, Disk
 from companion.sat.mixture import NO_LABEL, Mixture, make_mixture
 from companion.sat.motion import TargetMotion
 from companion.sat.tracks import Evidence, TrackLog, TrackParams, Tracks, grown_covs, maintain
@@ -149,7 +151,7 @@ def _confirmed_walker() -> tuple[Tracks, Mixture]:
 
 
 def _evidence(centre_xy: list[float], radius_m: float, clutter_per_m2: float = 1e-5) -> Evidence:
-    return Evidence(Disk(np.array(centre_xy), radius_m), 0.98, clutter_per_m2, np.eye(2))
+    return Evidence(Disk(np.array(centre_xy), radius_m), 0.98, clutter_per_m2, np.eye(2), 1e-3)
 
 
 def test_an_unseen_movers_track_coasts_alone_with_a_growing_honest_covariance() -> None:
@@ -221,3 +223,41 @@ def test_a_miss_in_view_counts_against_a_track_and_one_out_of_view_does_not() ->
     seen, _ = maintain(tracks, light, NONE, np.array([False]), 3.0, PARAMS,
                        _evidence([0.0, 0.0], 20.0))
     np.testing.assert_allclose(seen.score[0], before + np.log(1.0 - 0.98), rtol=1e-6)
+
+
+def test_a_track_pushed_out_of_the_search_area_ends() -> None:
+    area = ConvexPolygon(np.array([[-50.0, -50.0], [50.0, -50.0], [50.0, 50.0], [-50.0, 50.0]]))
+    params = replace(WALKERS, area=area)
+    tracks, _ = _confirmed_walker()
+    inside, _ = maintain(tracks, Mixture.empty(), NONE, np.zeros(0, dtype=bool), 3.0, params)
+    assert inside.ids.tolist() == [0]
+    outside = replace(inside, means=np.array([[400.0, 0.0]]))
+    gone, _ = maintain(outside, Mixture.empty(), NONE, np.zeros(0, dtype=bool), 4.0, params)
+    assert gone.size == 0
+
+
+def test_a_mover_found_again_by_a_new_track_keeps_its_old_track() -> None:
+    """The walker's old track is coasting; a second track confirms 8 m away: being the old target
+    explains it better than a target not seen yet (density above the birth intensity)."""
+    tracks, _ = _confirmed_walker()
+    tracks, _ = maintain(tracks, Mixture.empty(), NONE, np.zeros(0, dtype=bool), 20.0, WALKERS)
+    evidence = _evidence([8.0, 0.0], 25.0)
+    labelled = _mix([[8.0, 0.0]], [0.9])
+    for t in (21.0, 22.0, 23.0):
+        frame = Mixture(labelled.weights, labelled.means, labelled.covs, labelled.labels)
+        tracks, labelled = maintain(tracks, frame, np.array([0]), np.array([True]), t, WALKERS,
+                                    evidence)
+    assert tracks.ids.tolist() == [0], "one track, the old one"
+    assert labelled.labels.tolist() == [0]
+    np.testing.assert_allclose(tracks.means[0], [8.0, 0.0])
+    assert tracks.seen_t_s.tolist() == [23.0]
+    assert tracks.hits.tolist() == [6]
+    # Far away (80 m), the new track is another target: both stay.
+    far, _ = _confirmed_walker()
+    far, _ = maintain(far, Mixture.empty(), NONE, np.zeros(0, dtype=bool), 20.0, WALKERS)
+    labelled = _mix([[80.0, 0.0]], [0.9])
+    for t in (21.0, 22.0, 23.0):
+        frame = Mixture(labelled.weights, labelled.means, labelled.covs, labelled.labels)
+        far, labelled = maintain(far, frame, np.array([0]), np.array([True]), t, WALKERS,
+                                 _evidence([80.0, 0.0], 25.0))
+    assert far.ids.tolist() == [0, 1]

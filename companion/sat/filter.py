@@ -254,7 +254,9 @@ def step(
 
     est_index = extract(reduced, params.extract_weight)
     est_rows = np.flatnonzero(reduced.weights > params.extract_weight)
-    evidence = None if region is None else Evidence(region, params.p_detect, clutter, r_cov)
+    evidence = None if region is None else Evidence(
+        region, params.p_detect, clutter, r_cov, params.birth_weight / region.area_m2
+    )
     tracks, labelled = maintain(
         state.tracks, reduced, est_rows, detected_reduced, scan.t_s, params.tracks, evidence
     )

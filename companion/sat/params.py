@@ -67,6 +67,7 @@ class FilterSpec:
     manoeuvre_time: float  # s
     confirm_existence: float
     drop_existence: float
+    coast_after: float  # s
 
 
 _GP = GpParams()
@@ -124,11 +125,20 @@ FILTER_KEYS: tuple[Key, ...] = (
         "confirmed (its score: detections for, misses in view against)", project=True),
     Key("drop_existence", Float(gt=0, le=0.9999), _TRACKS.drop_existence,
         "existence probability below which a track ends", project=True),
+    Key("coast_after", Float(gt=0), _TRACKS.coast_after_s,
+        "seconds without a detection after which a confirmed track is reported as coasting "
+        "(on prediction alone) rather than seen", project=True),
 )
 
 
 def sat_params(f: FilterSpec, p_detect: float, clutter_per_scan: float, dt_s: float) -> SatParams:
-    """The filter's parameters from a [filter] table, p(D|F), clutter and the step length."""
+    """The filter's parameters from a [filter] table, p(D|F), clutter and the step length.
+
+    The linear model's noise per step is at least the targets' motion class's displacement
+    variance over one step, so that a component that no GP predicts can follow a mover.
+    """
+    motion = TargetMotion(f.target_speed, f.manoeuvre_time)
+    step_var_m2 = max(f.process_noise, motion.displacement_var_m2(dt_s))
     return SatParams(
         p_survive=f.p_survive,
         p_detect=p_detect,
@@ -140,12 +150,12 @@ def sat_params(f: FilterSpec, p_detect: float, clutter_per_scan: float, dt_s: fl
         max_components=f.max_components,
         use_gp=f.motion == MotionModel.GP,
         linear_model=LinearModel(f.linear_model),
-        q_m2_per_s=f.process_noise / dt_s,
+        q_m2_per_s=step_var_m2 / dt_s,
         birth=BirthWeight(f.birth),
         birth_weight=f.birth_weight,
         velocity_var_m2_s2=f.velocity_variance,
         gp=GpParams(f.gp_sigma_f, f.gp_lengthscale, f.gp_sigma_n, f.gp_window),
         tracks=TrackParams(f.merge_distance, f.confirm_length, f.track_timeout, f.gp_window,
-                           TargetMotion(f.target_speed, f.manoeuvre_time),
-                           f.confirm_existence, f.drop_existence),
+                           motion, f.confirm_existence, f.drop_existence,
+                           coast_after_s=f.coast_after),
     )

@@ -57,16 +57,20 @@ class TrackParams:
     confirm_existence: float = 0.99  # existence a track needs to be confirmed
     drop_existence: float = 0.1  # existence below which a track ends
     max_existence: float = 0.9999  # cap, so that misses in view can end a long-seen track
+    area: Region | None = None  # the search area, where the targets are (None: anywhere)
+    coast_after_s: float = 10.0  # a track not detected for longer is coasting on prediction
 
 
 @dataclass(frozen=True, slots=True)
 class Evidence:
-    """What the sensor could say this step: its footprint, p(D|F), clutter density and R."""
+    """What the sensor could say this step: its footprint, p(D|F), clutter density, R and the
+    density of targets not yet seen (the birth intensity)."""
 
     region: Region
     p_detect: float
     clutter_per_m2: float
     r_cov: FloatArray
+    birth_per_m2: float
 
 
 def _logit(p: float) -> float:
@@ -371,19 +375,77 @@ def maintain(
     # until the frames refute it; a stationary one's ends after the timeout.
     coasting = ~supported & tracks.confirmed & (params.motion.speed_m_s > 0.0)
     updated = _coast(updated, np.flatnonzero(coasting), t_s, params, evidence)
+    existence = updated.existence
+    if params.area is not None and coasting.any():
+        # a track coasting alone exists only as far as its Gaussian lies in the search area
+        honest = grown_covs(updated, t_s, params.motion)[coasting, :2, :2]
+        existence = existence.copy()
+        existence[coasting] *= prob_in_region(
+            updated.means[coasting, :2], honest, params.area, check=False
+        )
     alive = (
         supported | coasting | (tracks.confirmed & (t_s - tracks.last_t_s <= params.timeout_s))
-    ) & (updated.score >= _logit(params.drop_existence))
+    ) & (existence >= params.drop_existence)
     survivors = updated if alive.all() else updated.take(alive)
     new_rows = est_rows[~has_estimate]
     labels = np.full(mix.size, NO_LABEL, dtype=np.int64)
     held = supported[alive]
     labels[supported_by[alive][held]] = survivors.ids[held]
+    if evidence is not None and params.motion.speed_m_s > 0.0:
+        survivors, labels = _absorb(
+            survivors, labels, tracks.confirmed[alive], t_s, params, evidence.birth_per_m2
+        )
     if new_rows.size == 0:
         return survivors, Mixture(mix.weights, mix.means, mix.covs, labels)
     born = _new_tracks(tracks, new_rows, detected[new_rows], mix, t_s, params)
     labels[new_rows] = born.ids
     return _concat(survivors, born), Mixture(mix.weights, mix.means, mix.covs, labels)
+
+
+def _absorb(
+    tracks: Tracks,
+    labels: IntArray,
+    was_confirmed: BoolArray,
+    t_s: float,
+    params: TrackParams,
+    birth_per_m2: float,
+) -> tuple[Tracks, IntArray]:
+    """A track confirmed this step is the target of a confirmed track not detected since the
+    new one was born, found again, when that explains it better than a target not yet seen:
+    N(m_new; m_old, P_old + P_new) > the birth intensity (Eq. refound), with P_old the old
+    track's honest covariance; the old track then takes the new one's state and its component's
+    label, and the new one ends. Most likely pairs first.
+    """
+    new = np.flatnonzero(tracks.confirmed & ~was_confirmed)
+    old = np.flatnonzero(was_confirmed)
+    if new.size == 0 or old.size == 0:
+        return tracks, labels
+    honest = grown_covs(tracks, t_s, params.motion)
+    diff = tracks.means[new, None, :2] - tracks.means[None, old, :2]
+    inv, det = inv_det_2x2(honest[None, old, :2, :2] + tracks.covs[new, None, :2, :2])
+    dist = np.einsum("noi,noij,noj->no", diff, inv, diff)
+    density = np.exp(-0.5 * dist) / (2.0 * math.pi * np.sqrt(det))
+    unseen = tracks.seen_t_s[old][None, :] < tracks.born_t_s[new][:, None]
+    pairs = np.argwhere((density > birth_per_m2) & unseen)  # Eq. refound
+    if pairs.size == 0:
+        return tracks, labels
+    taken = np.zeros(tracks.size, dtype=bool)
+    ended = np.zeros(tracks.size, dtype=bool)
+    rows = {name: getattr(tracks, name).copy() for name in _ROW_FIELDS}
+    for i, j in pairs[np.argsort(-density[pairs[:, 0], pairs[:, 1]], kind="stable")]:
+        n, o = new[i], old[j]
+        if taken[n] or taken[o]:
+            continue
+        taken[n] = taken[o] = ended[n] = True
+        for name in _ROW_FIELDS:
+            if name not in ("ids", "born_t_s", "hits", "life"):
+                rows[name][o] = rows[name][n]
+        rows["hits"][o] += rows["hits"][n]
+        rows["life"][o] += rows["life"][n]
+        labels[labels == tracks.ids[n]] = tracks.ids[o]
+    found = taken & ~ended
+    log = tracks.log.append(rows["ids"][found], t_s, rows["means"][found], rows["covs"][found])
+    return replace(tracks, **rows, log=log).take(~ended), labels
 
 
 def _scores(

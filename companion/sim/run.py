@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -44,9 +44,15 @@ Progress = Callable[[int, int], None]
 
 
 def filter_params(s: Scenario) -> SatParams:
-    """The filter's parameters from a scenario's [filter] and [sensor] tables."""
-    return sat_params(s.filter, s.sensor.p_detect, s.sensor.clutter_prob + s.sensor.clutter_rate,
-                      s.dt_s)
+    """The filter's parameters from a scenario's [filter] and [sensor] tables; the world is the
+    search area."""
+    params = sat_params(
+        s.filter, s.sensor.p_detect, s.sensor.clutter_prob + s.sensor.clutter_rate, s.dt_s
+    )
+    width_m, height_m = s.world.size_m
+    area = ConvexPolygon(np.array([[0.0, 0.0], [width_m, 0.0], [width_m, height_m],
+                                   [0.0, height_m]]))
+    return replace(params, tracks=replace(params.tracks, area=area))
 
 
 def scenario_planner(s: Scenario, world: World) -> Planner:
@@ -132,7 +138,9 @@ class SimResult:
         """The JSON object of the `simulate --json` contract."""
         state = self.final_state
         confirmed = state.tracks.confirmed
-        covs = grown_covs(state.tracks, state.t_s, filter_params(self.scenario).tracks.motion)
+        track_params = filter_params(self.scenario).tracks
+        covs = grown_covs(state.tracks, state.t_s, track_params.motion)
+        coasting = confirmed & state.tracks.coasting(state.t_s, track_params.coast_after_s)
         closest, second = mahalanobis_to_tracks(
             self.final_truth_xy, state.tracks.means[confirmed, :2], covs[confirmed, :2, :2]
         )
@@ -151,6 +159,7 @@ class SimResult:
             "filter_s": float(self.step_ms.sum() / 1e3),
             "true_count": int(self.true_count[-1]),
             "tracks_confirmed": int(self.tracks_confirmed[-1]),
+            "tracks_coasting": int(coasting.sum()),
             "weight_sum": float(self.weight_sum[-1]),
             "components": int(self.components[-1]),
             **summarize_mahalanobis(closest, second),
