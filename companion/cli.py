@@ -81,15 +81,20 @@ def _battery(args: argparse.Namespace) -> int:
 
 def _learn_gp(args: argparse.Namespace) -> int:
     from companion.sim.scenario import load_scenario
-    from companion.sim.training import learn_for_scenario
+    from companion.sim.training import learn_for_scenario, learn_motion_for_scenario
 
     scenario = load_scenario(resolve_scenario(args.scenario))
     params = learn_for_scenario(scenario, args.targets, args.steps, args.seed)
+    motion = (learn_motion_for_scenario(scenario, args.targets, args.steps, args.seed)
+              if scenario.targets.speed_m_s > 0.0 else None)
     print(f"# learned by: companion learn-gp {args.scenario} --targets {args.targets} "
           f"--steps {args.steps} --seed {args.seed}")
     print(f"gp_sigma_f = {params.sigma_f_m:.4g}")
     print(f"gp_lengthscale = {params.lengthscale_s:.4g}")
     print(f"gp_sigma_n = {params.sigma_n_m:.4g}")
+    if motion is not None:
+        print(f"target_speed = {motion.speed_m_s:.4g}")
+        print(f"manoeuvre_time = {motion.manoeuvre_s:.4g}")
     return EXIT_OK
 
 

@@ -116,7 +116,9 @@ def test_learn_gp_prints_scenario_lines(capsys: pytest.CaptureFixture[str]) -> N
     assert main(args) == 0
     lines = capsys.readouterr().out.splitlines()
     values = dict(line.split(" = ") for line in lines if " = " in line)
-    assert set(values) == {"gp_sigma_f", "gp_lengthscale", "gp_sigma_n"}
+    assert set(values) == {"gp_sigma_f", "gp_lengthscale", "gp_sigma_n", "target_speed",
+                           "manoeuvre_time"}
+    assert 0.02 < float(values["target_speed"]) < 0.15  # the targets walk at 0.05 m/s
     # Targets at 0.05 m/s on 200 s legs: a smooth trend well above the 1 m noise floor.
     assert float(values["gp_lengthscale"]) > 10.0
     assert 0.5 < float(values["gp_sigma_n"]) < 1.5

@@ -11,19 +11,26 @@ so the displacement after tau seconds unseen has, per axis, the variance of inte
     s^2(tau) = 2 sigma_v^2 tau_c^2 (tau / tau_c - 1 + exp(-tau / tau_c))      # Eq. iou_variance
 
 ballistic (sigma_v^2 tau^2) at first and diffusive (2 sigma_v^2 tau_c tau) later: it never
-saturates. speed = 0 (stationary targets) gives 0.
+saturates. speed = 0 (stationary targets) gives 0. `learn_motion` fits the class to recorded or
+simulated trajectories (companion learn-gp prints it beside the GP's hyperparameters).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
+import numpy.typing as npt
 from numba import njit
+from scipy.optimize import least_squares
 
 from companion.errors import InputError
 
-__all__ = ["TargetMotion", "iou_variance_m2"]
+__all__ = ["TargetMotion", "iou_variance_m2", "learn_motion"]
+
+FloatArray = npt.NDArray[np.float64]
 
 
 @dataclass(frozen=True, slots=True)
@@ -63,3 +70,55 @@ def iou_variance_m2(sv2: float, tau_c_s: float, tau_s: float) -> float:  # pragm
         return 0.0
     x = tau_s / tau_c_s
     return 2.0 * sv2 * tau_c_s * tau_c_s * (x + math.expm1(-x))
+
+
+def learn_motion(
+    trajectories: Sequence[tuple[npt.ArrayLike, npt.ArrayLike]], max_lag: int = 600
+) -> TargetMotion:
+    """The motion class that best explains trajectories [(t_s (n,), y (n, 2)), ...] sampled at
+    one fixed step: Eq. iou_variance plus twice the observation noise fitted, by least squares
+    on a log scale, to each axis's empirical variance of displacements over lags 1..max_lag."""
+    lags, variances = _displacement_variances(trajectories, max_lag)
+
+    def residual(theta: FloatArray) -> FloatArray:
+        sv2, tau_c, noise2 = np.exp(theta)
+        model = [iou_variance_m2(sv2, tau_c, lag) + 2.0 * noise2 for lag in lags.tolist()]
+        return np.asarray(np.log(model) - np.log(variances), dtype=np.float64)
+
+    span = float(lags[-1])
+    start = np.log([max(variances[0] / lags[0] ** 2, 1e-12), span / 4.0, 1e-2])
+    fit = least_squares(residual, start, bounds=(np.log([1e-12, 1e-3 * span, 1e-8]),
+                                                 np.log([1e6, 1e3 * span, 1e6])))
+    sv2, tau_c, _ = (float(v) for v in np.exp(fit.x))
+    return TargetMotion(math.sqrt(2.0 * sv2), 2.0 * tau_c)
+
+
+def _displacement_variances(
+    trajectories: Sequence[tuple[npt.ArrayLike, npt.ArrayLike]], max_lag: int
+) -> tuple[FloatArray, FloatArray]:
+    """Lags (s) and the per-axis variance of displacements over each, pooled over trajectories."""
+    steps: list[float] = []
+    paths: list[FloatArray] = []
+    for i, (t_raw, y_raw) in enumerate(trajectories):
+        t = np.asarray(t_raw, dtype=np.float64)
+        y = np.asarray(y_raw, dtype=np.float64)
+        if t.ndim != 1 or y.shape != (t.size, 2) or t.size < 3 or not np.all(np.isfinite(y)):
+            raise InputError(f"trajectory {i}: needs t_s (n,) and finite y (n, 2), n >= 3")
+        dt = np.diff(t)
+        if not (np.all(dt > 0.0) and np.allclose(dt, dt[0])):
+            raise InputError(f"trajectory {i}: samples must be evenly spaced in time")
+        steps.append(float(dt[0]))
+        paths.append(y)
+    if not paths:
+        raise InputError("learn_motion needs at least one trajectory")
+    if not np.allclose(steps, steps[0]):
+        raise InputError("learn_motion: every trajectory must have the same time step")
+    longest = min(max_lag, min(p.shape[0] for p in paths) - 1)
+    lag_steps = np.unique(np.geomspace(1, longest, 40).astype(np.int64))
+    variances = np.array([
+        np.mean(np.concatenate([(p[k:] - p[:-k]).ravel() ** 2 for p in paths]))
+        for k in lag_steps.tolist()
+    ])
+    if not np.all(variances > 0.0):
+        raise InputError("learn_motion needs trajectories that move")
+    return lag_steps.astype(np.float64) * steps[0], variances.astype(np.float64)

@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 
 from companion.plan.world import World
 from companion.sat.gp import GpParams, learn_gp_params
+from companion.sat.motion import TargetMotion, learn_motion
 from companion.sim.scenario import Scenario
 from companion.sim.truth import advance_truth, initial_truth
 
@@ -41,3 +42,9 @@ def learn_for_scenario(s: Scenario, n_targets: int, steps: int, seed: int) -> Gp
     """GP hyperparameters learned from the scenario's motion model (window: its gp_window)."""
     rng = np.random.default_rng(seed)
     return learn_gp_params(training_trajectories(s, n_targets, steps, rng), s.filter.gp_window)
+
+
+def learn_motion_for_scenario(s: Scenario, n_targets: int, steps: int, seed: int) -> TargetMotion:
+    """The motion class learned from the scenario's motion model (the same training set)."""
+    rng = np.random.default_rng(seed)
+    return learn_motion(training_trajectories(s, n_targets, steps, rng))
