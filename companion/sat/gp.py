@@ -302,13 +302,69 @@ def gp_predict_rows(  # pragma: no cover - compiled; tested through predict_fit
                     v += k[w] * (t_s[r, w] - times[a]) / (lam * lam) * beta[r, w, c]
                 mean[a, out, c] = m
                 velocity[a, out, c] = v
+            # quad = k^T Ky^-1 k = sum_w k[w] (row w of Ky^-1 . k), each row product summed in
+            # column order; four rows at a time, as independent sums that the CPU overlaps.
             quad = 0.0
-            for w in range(first, width):
+            w = first
+            while w + 3 < width:
+                r0 = r1 = r2 = r3 = 0.0
+                for u in range(first, width):
+                    ku = k[u]
+                    r0 += ky_inv[r, w, u] * ku
+                    r1 += ky_inv[r, w + 1, u] * ku
+                    r2 += ky_inv[r, w + 2, u] * ku
+                    r3 += ky_inv[r, w + 3, u] * ku
+                quad += k[w] * r0
+                quad += k[w + 1] * r1
+                quad += k[w + 2] * r2
+                quad += k[w + 3] * r3
+                w += 4
+            while w < width:
                 row = 0.0
                 for u in range(first, width):
                     row += ky_inv[r, w, u] * k[u]
                 quad += k[w] * row
+                w += 1
             var[a, out] = max(sf2 - quad, floor)
+
+
+@njit(cache=True, nogil=True)
+def _window_offsets(  # pragma: no cover - compiled; tested through GpPredictor.fit
+    t_s: FloatArray, count: IntArray, rel_q: FloatArray, rel_ns: IntArray
+) -> None:
+    """Each row's valid times as offsets from its newest point, rounded to whole nanoseconds
+    (seconds in rel_q, integer nanoseconds in rel_ns); 0 in the columns before its count."""
+    n_rows, width = t_s.shape
+    for i in range(n_rows):
+        first = width - count[i]
+        newest = t_s[i, width - 1]
+        for w in range(width):
+            ns = np.rint((t_s[i, w] - newest) * _NS_PER_S) if w >= first else 0.0
+            rel_q[i, w] = ns / _NS_PER_S
+            rel_ns[i, w] = np.int64(ns)
+
+
+@njit(cache=True, nogil=True)
+def _centred_weights(  # pragma: no cover - compiled; tested through GpPredictor.fit
+    y: FloatArray, count: IntArray, ky_inv: FloatArray, mu: FloatArray, beta: FloatArray
+) -> None:
+    """mu = the mean of each row's valid points, beta = Ky^-1 (y - mu) over them, 0 elsewhere
+    (see GpFit)."""
+    n_rows, width, dim = y.shape
+    for i in range(n_rows):
+        first = width - count[i]
+        for c in range(dim):
+            total = 0.0
+            for w in range(first, width):
+                total += y[i, w, c]
+            mu[i, c] = total / count[i]  # constant prior mean: the window's mean
+        for w in range(width):
+            for c in range(dim):
+                acc = 0.0
+                if w >= first:
+                    for v in range(first, width):
+                        acc += ky_inv[i, w, v] * (y[i, v, c] - mu[i, c])
+                beta[i, w, c] = acc
 
 
 class GpPredictor:
@@ -376,20 +432,18 @@ class GpPredictor:
         """fit() after its checks."""
         n_rows, width = t_arr.shape
         count = np.minimum(c_arr, self._params.window).astype(np.int64)
-        valid = np.arange(width)[None, :] >= (width - count)[:, None]
-        rel = np.where(valid, t_arr - t_arr[:, -1:], 0.0)  # offsets from the newest point
-        rel_q, rel_ns = _quantise_rel(rel)
+        t_w = np.ascontiguousarray(t_arr, dtype=np.float64)
+        rel_q = np.empty((n_rows, width))
+        rel_ns = np.empty((n_rows, width), dtype=np.int64)
+        _window_offsets(t_w, count, rel_q, rel_ns)
         ky_inv = np.zeros((n_rows, width, width))
         for i in range(n_rows):
-            n = int(count[i])
-            first = width - n
+            first = width - int(count[i])
             ky_inv[i, first:, first:] = self._ky_inv(rel_q[i, first:], rel_ns[i, first:])
-        mask3 = valid[:, :, None]
-        y0 = np.where(mask3, y_arr, 0.0)
-        mu = y0.sum(axis=1) / count[:, None]  # constant prior mean: the window's mean
-        centred = np.where(mask3, y0 - mu[:, None, :], 0.0)
-        beta = np.einsum("twv,tvd->twd", ky_inv, centred)
-        return GpFit(t_arr.copy(), count, mu, beta, ky_inv)
+        mu = np.empty((n_rows, y_arr.shape[2]))
+        beta = np.empty(y_arr.shape)
+        _centred_weights(np.ascontiguousarray(y_arr, dtype=np.float64), count, ky_inv, mu, beta)
+        return GpFit(t_w.copy() if t_w is t_arr else t_w, count, mu, beta, ky_inv)
 
     def predict(
         self, t_s: npt.ArrayLike, y: npt.ArrayLike, counts: npt.ArrayLike, t_star_s: float
@@ -416,7 +470,7 @@ class GpPredictor:
         params = self._params
         diff = (rel_q[:, None] - rel_q[None, :]) / params.lengthscale_s
         ky = params.sigma_f_m**2 * np.exp(-0.5 * diff * diff)  # Eq. gp_kernel: K(K, K)
-        ky[np.diag_indices_from(ky)] += params.sigma_n_m**2
+        ky.flat[:: ky.shape[0] + 1] += params.sigma_n_m**2  # the diagonal: + sigma_n^2 I
         try:
             inv = np.asarray(np.linalg.inv(ky), dtype=np.float64)
         except np.linalg.LinAlgError as exc:

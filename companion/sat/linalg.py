@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -35,12 +37,26 @@ def spd_2x2_faults(covs: FloatArray) -> tuple[BoolArray, BoolArray]:
     Symmetric: |P01 - P10| <= SYMMETRY_RTOL max(|P00|, |P11|). Positive definite, of the
     symmetric part: P00 > 0 and P01^2 < (1 - CORRELATION_TOL) P00 P11 (so P11 > 0, det P > 0).
     """
+    if covs.shape == (2, 2):  # one matrix (a scan's R): the same tests on Python floats
+        return _spd_2x2_faults_one(covs)
     p00, p10, p01, p11 = covs[..., 0, 0], covs[..., 1, 0], covs[..., 0, 1], covs[..., 1, 1]
     asymmetric = np.abs(p01 - p10) > SYMMETRY_RTOL * np.maximum(np.abs(p00), np.abs(p11))
     with np.errstate(over="ignore", under="ignore"):  # P00 P11 rounds to inf (kept) or 0 (refused)
         p01 = np.where(p01 == p10, p01, 0.5 * (p01 + p10))
         definite = (p00 > 0.0) & (p01 * p01 < (1.0 - CORRELATION_TOL) * (p00 * p11))
     return np.asarray(asymmetric), np.asarray(~definite)
+
+
+def _spd_2x2_faults_one(cov: FloatArray) -> tuple[BoolArray, BoolArray]:
+    """spd_2x2_faults of a single 2x2, without numpy's per-call overhead (same IEEE results:
+    Python floats round, overflow to inf and underflow to 0 as float64 arrays do)."""
+    (p00, p01), (p10, p11) = cov.tolist()
+    scale = math.nan if math.isnan(p00) or math.isnan(p11) else max(abs(p00), abs(p11))
+    asymmetric = abs(p01 - p10) > SYMMETRY_RTOL * scale  # np.maximum propagates NaN, max not
+    if p01 != p10:
+        p01 = 0.5 * (p01 + p10)
+    definite = p00 > 0.0 and p01 * p01 < (1.0 - CORRELATION_TOL) * (p00 * p11)
+    return np.asarray(asymmetric), np.asarray(not definite)
 
 
 def inv_stack(a: FloatArray) -> FloatArray:

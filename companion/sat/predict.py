@@ -73,7 +73,8 @@ def predict_linear(mix: Mixture, f: FloatArray, q: FloatArray, p_survive: float)
         # eigenvalue of the correlation matrix above ~1e-12 and changes nothing measurable.
         diag = np.arange(f.shape[0])
         covs[:, diag, diag] *= 1.0 + _VAR_FLOOR_REL
-    return Mixture(p_survive * mix.weights, means, covs, mix.labels)
+    weights = mix.weights if p_survive == 1.0 else p_survive * mix.weights  # 1 w = w exactly
+    return Mixture(weights, means, covs, mix.labels)
 
 
 def apply_gp(

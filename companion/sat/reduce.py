@@ -8,7 +8,6 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from companion.sat.linalg import inv_stack
 from companion.sat.mixture import NO_LABEL, Mixture
 
 FloatArray = NDArray[np.float64]
@@ -17,8 +16,57 @@ IntArray = NDArray[np.int64]
 
 def prune(mix: Mixture, weight_threshold: float) -> tuple[Mixture, NDArray[np.bool_]]:
     """Keep the components with w > T (Vo & Ma Table 2); also returns the kept mask."""
-    keep = mix.weights > weight_threshold
-    return mix.take(keep), keep
+    keep = np.empty(mix.size, dtype=np.bool_)
+    n_kept = _keep_heavy(mix.weights, weight_threshold, keep)
+    if n_kept == mix.size:  # nothing to prune: the mixture stands as it is
+        return mix, keep
+    d = mix.dim
+    kept = Mixture(
+        np.empty(n_kept), np.empty((n_kept, d)), np.empty((n_kept, d, d)),
+        np.empty(n_kept, dtype=np.int64),
+    )
+    _compress(keep, mix.weights, mix.means, mix.covs, mix.labels,
+              kept.weights, kept.means, kept.covs, kept.labels)
+    return kept, keep
+
+
+@njit(cache=True, nogil=True)
+def _keep_heavy(  # pragma: no cover - compiled; tested through prune
+    weights: FloatArray, threshold: float, keep: NDArray[np.bool_]
+) -> int:
+    """keep = w > T per component (Vo & Ma Table 2); returns how many are kept."""
+    n_kept = 0
+    for i in range(weights.shape[0]):
+        keep[i] = weights[i] > threshold
+        n_kept += keep[i]
+    return n_kept
+
+
+@njit(cache=True, nogil=True)
+def _compress(  # pragma: no cover - compiled; tested through prune
+    keep: NDArray[np.bool_],
+    weights: FloatArray,
+    means: FloatArray,
+    covs: FloatArray,
+    labels: IntArray,
+    w_out: FloatArray,
+    m_out: FloatArray,
+    p_out: FloatArray,
+    labels_out: IntArray,
+) -> None:
+    """Copy the kept components, in order, into the output arrays."""
+    at = 0
+    for i in range(keep.shape[0]):
+        if keep[i]:
+            w_out[at] = weights[i]
+            m_out[at] = means[i]
+            p_out[at] = covs[i]
+            labels_out[at] = labels[i]
+            at += 1
+
+
+_NO_RESOLUTION = np.eye(2)
+"""Placeholder R when merge is given none (its inverse is then taken as 0)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -60,18 +108,16 @@ def merge(
         return MergeResult(mix, np.zeros(0, dtype=np.int64))
     order = np.argsort(-mix.weights, kind="stable")
     seen = np.zeros(n, dtype=np.bool_) if observed is None else observed
-    resolution_inv = np.zeros((2, 2)) if resolution is None else inv_stack(resolution[None])[0]
-    leader_of = _greedy_groups(
+    group_of = np.empty(n, dtype=np.int64)
+    leaders = np.empty(n, dtype=np.int64)
+    n_groups = _greedy_groups(
         mix.means, mix.covs, mix.labels, seen, order, distance_sq_threshold, symmetric,
-        observed is not None, resolution_inv,
+        observed is not None, _NO_RESOLUTION if resolution is None else resolution,
+        resolution is not None, max_components, group_of, leaders,
     )
-    leaders = order[leader_of[order] == order][:max_components]  # greedy (heaviest-first) order
-    group_index = np.full(n, -1, dtype=np.int64)
-    group_index[leaders] = np.arange(leaders.size)
-    group_of = group_index[leader_of]
-    if leaders.size == n:  # nothing merged or dropped: the mixture stands as it is
+    if n_groups == n:  # nothing merged or dropped: the mixture stands as it is
         return MergeResult(mix.take(leaders), group_of)
-    return MergeResult(_moment_match(mix, group_of, leaders.size), group_of)
+    return MergeResult(_moment_match(mix, group_of, n_groups), group_of)
 
 
 @njit(cache=True, nogil=True)
@@ -84,9 +130,22 @@ def _greedy_groups(  # pragma: no cover - compiled; tested through merge
     threshold: float,
     symmetric: bool,
     label_rule: bool,
-    resolution_inv: FloatArray,
-) -> IntArray:
-    """The leader (heaviest member) of each component's group in Vo & Ma's greedy merging."""
+    resolution: FloatArray,
+    has_resolution: bool,
+    max_groups: int,
+    group_of: IntArray,
+    leaders: IntArray,
+) -> int:
+    """Vo & Ma's greedy merging: fill each component's group index (-1: beyond max_groups) and
+    the groups' leaders (heaviest members) in greedy order; return the number of groups."""
+    resolution_inv = np.zeros((2, 2))
+    if has_resolution:  # closed-form 2x2 inverse
+        det_r = resolution[0, 0] * resolution[1, 1] - resolution[0, 1] * resolution[1, 0]
+        resolution_inv[0, 0], resolution_inv[1, 1] = resolution[1, 1], resolution[0, 0]
+        resolution_inv[0, 1], resolution_inv[1, 0] = -resolution[0, 1], -resolution[1, 0]
+        for r in range(2):
+            for c in range(2):
+                resolution_inv[r, c] /= det_r
     n, dim = means.shape
     leader_of = np.full(n, -1, dtype=np.int64)
     diff = np.empty(dim)
@@ -124,7 +183,16 @@ def _greedy_groups(  # pragma: no cover - compiled; tested through merge
             if symmetric and _quad(diff, inv[j]) > threshold:
                 continue
             leader_of[i] = j
-    return leader_of
+    group_index = np.full(n, -1, dtype=np.int64)
+    n_groups = 0
+    for j in order:  # leaders in greedy (heaviest-first) order, up to max_groups
+        if leader_of[j] == j and n_groups < max_groups:
+            group_index[j] = n_groups
+            leaders[n_groups] = j
+            n_groups += 1
+    for i in range(n):
+        group_of[i] = group_index[leader_of[i]]
+    return n_groups
 
 
 @njit(cache=True, nogil=True)

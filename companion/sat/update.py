@@ -65,7 +65,7 @@ def visibility(
         p_in_fov, first, second = truncation_moments(pos_means, pos_covs, region, check=False)
         return Visibility(p_detect_in_fov * p_in_fov, p_detect_in_fov, first, second)
     p_in_fov = prob_in_region(pos_means, pos_covs, region, check=False)
-    return Visibility(p_detect_in_fov * p_in_fov, p_detect_in_fov)
+    return Visibility(p_detect_in_fov * p_in_fov, p_detect_in_fov)  # Eq. prob_of_detection
 
 
 _MOMENT_MIN_MISS = 1e-9
@@ -87,6 +87,8 @@ def no_detection(
     view, so its missed-detection hypothesis is not pushed out of it.
     """
     p_d = vis.p_d
+    if not p_d.any():  # nothing in view: (1 - 0) w = w, and no rule moves a component
+        return pred
     weights = (1.0 - p_d) * pred.weights
     if push is None:
         return Mixture(weights, pred.means, pred.covs, pred.labels)
@@ -170,21 +172,16 @@ def detection(
     d = pred.dim
     if n == 0 or m == 0:
         return DetectionUpdate(Mixture.empty(d), np.zeros(m))
-    weights = np.empty((m, n))
-    means = np.empty((m, n, d))
-    covs_upd = np.empty((n, d, d))
+    weights = np.empty(m * n)
+    means = np.empty((m * n, d))
+    covs = np.empty((m * n, d, d))
+    labels = np.empty(m * n, dtype=np.int64)
     explained = np.zeros(m)
     _detection_kernel(
-        pred.weights, pred.means, pred.covs, p_d, measurements_xy, r_cov,
-        clutter_intensity + birth_intensity, weights, means, covs_upd, explained,
+        pred.weights, pred.means, pred.covs, pred.labels, p_d, measurements_xy, r_cov,
+        clutter_intensity + birth_intensity, weights, means, covs, labels, explained,
     )
-    children = Mixture(
-        weights.reshape(-1),
-        means.reshape(m * n, d),
-        np.broadcast_to(covs_upd, (m, n, d, d)).reshape(m * n, d, d),
-        np.tile(pred.labels, m),
-    )
-    return DetectionUpdate(children, explained)
+    return DetectionUpdate(Mixture(weights, means, covs, labels), explained)
 
 
 @njit(cache=True, nogil=True)
@@ -192,17 +189,21 @@ def _detection_kernel(  # pragma: no cover - compiled; tested through detection
     w: FloatArray,
     mean: FloatArray,
     cov: FloatArray,
+    labels: NDArray[np.int64],
     p_d: FloatArray,
     z: FloatArray,
     r: FloatArray,
     background: float,
     w_out: FloatArray,
     m_out: FloatArray,
-    p_out: FloatArray,
+    cov_out: FloatArray,
+    labels_out: NDArray[np.int64],
     explained: FloatArray,
 ) -> None:
-    """Fill the detection children (measurement-major) and each measurement's sum_l p_D w q."""
+    """Fill the detection children (measurement-major rows k n + j: weight, mean, covariance and
+    label of component j updated by measurement k) and each measurement's sum_l p_D w q."""
     n, d = mean.shape
+    p_out = np.empty((n, d, d))  # the updated covariance, one per component
     gain = np.empty((n, d, 2))
     s_inv = np.empty((n, 2, 2))
     norm = np.empty(n)
@@ -237,15 +238,18 @@ def _detection_kernel(  # pragma: no cover - compiled; tested through detection
                 p_out[j, a, b] = p_out[j, b, a] = 0.5 * (pab + pba)
     for k in range(z.shape[0]):
         for j in range(n):
+            row = k * n + j
             v0, v1 = z[k, 0] - mean[j, 0], z[k, 1] - mean[j, 1]  # innovation z - H m
             maha = v0 * (s_inv[j, 0, 0] * v0 + s_inv[j, 0, 1] * v1) + v1 * (
                 s_inv[j, 1, 0] * v0 + s_inv[j, 1, 1] * v1
             )
             numer = p_d[j] * w[j] * norm[j] * math.exp(-0.5 * maha)  # p_D w N(z; H m, S)
-            w_out[k, j] = numer
+            w_out[row] = numer
             explained[k] += numer
             for a in range(d):  # m = m + K (z - H m)
-                m_out[k, j, a] = mean[j, a] + gain[j, a, 0] * v0 + gain[j, a, 1] * v1
+                m_out[row, a] = mean[j, a] + gain[j, a, 0] * v0 + gain[j, a, 1] * v1
+            cov_out[row] = p_out[j]
+            labels_out[row] = labels[j]
         denom = max(background + explained[k], _TINY)
         for j in range(n):
-            w_out[k, j] /= denom
+            w_out[k * n + j] /= denom  # Vo & Ma Table 1, step 4: normalised by kappa + b + sum
