@@ -36,31 +36,21 @@ import datetime as dt
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy import integrate
 
-from companion.plan.planners import LawnMower, move_towards
-from companion.plan.world import World
+from companion.plan.planners import PlannerKind
 from companion.sat.filter import SatParams, SatState, Scan, initial_state, step
 from companion.sat.fov import ConvexPolygon, Disk, Region, prob_in_region
 from companion.sat.gp import GpParams, GpPredictor, gp_predict, predict_fit
 from companion.sat.mixture import Mixture
 from companion.scenario_lookup import resolve_scenario
-from companion.sim.belief import initial_belief
-from companion.sim.run import (
-    filter_params,
-    planned_steps,
-    scenario_planner,
-    sensing_region,
-    simulate,
-)
+from companion.sim.run import scans_of, simulate, start
 from companion.sim.scenario import Scenario, load_scenario
-from companion.sim.sensor import SensorModel, sense
-from companion.sim.truth import advance_truth, initial_truth
 
 FloatArray = NDArray[np.float64]
 
@@ -119,57 +109,14 @@ class ScenarioScans:
 
 
 def scenario_scans(s: Scenario, steps: int) -> ScenarioScans:
-    """The first `steps` scans of scenario `s`, as `companion simulate` makes them.
+    """The first `steps` scans of scenario `s`, as `companion simulate` feeds them to the filter.
 
-    Same seeds, truth, lawn-mower flight and sensor model as the simulation (its planner reads
-    no filter state, so the scans do not depend on the filter).
+    The lawn mower reads no filter state, so the scans do not depend on the filter.
     """
-    world = World(*s.world.size_m)
-    params = filter_params(s)
-    sensor = SensorModel(
-        s.sensor.p_detect, s.sensor.noise_std_m, s.sensor.clutter_prob, s.sensor.clutter_rate
-    )
-    truth_rng, sensor_rng, belief_rng = (
-        np.random.default_rng(child) for child in np.random.SeedSequence(s.seed).spawn(3)
-    )
-    tg = s.targets
-    truth = initial_truth(tg.positions_xy, tg.count, tg.appear, world, truth_rng)
-    n_initial = int(truth.alive.sum())
-    belief = initial_belief(
-        s.belief.kind, s.belief.count, s.belief.offset_m, s.belief.variance_m2,
-        [(c.weight, np.array(c.mean_xy), c.cov) for c in s.belief.components],
-        truth.alive_xy, world, belief_rng, params.linear_model.state_dim,
-        params.velocity_var_m2_s2,
-    )
-    planner = scenario_planner(s, world)
-    if not isinstance(planner, LawnMower):
+    if s.robot.planner is not PlannerKind.LAWNMOWER:
         raise SystemExit(f"{s.name}: this benchmark flies the lawn mower only")
-    placeholder = initial_state(belief, 0.0, params)  # the lawn mower reads no filter state
-    r_cov = s.sensor.noise_std_m**2 * np.eye(2)
-    robot = np.array(s.robot.start_xy, dtype=np.float64)
-    progress = 0
-    scans: list[Scan] = []
-    for k in range(1, min(steps, planned_steps(s, world)) + 1):
-        truth = advance_truth(
-            truth, k, s.dt_s, tg.speed_m_s, tg.turn_every_steps, tg.appear, tg.disappear,
-            n_initial, world, truth_rng,
-        )
-        budget = s.robot.speed_m_s * s.dt_s
-        while budget > 1e-12:  # along the lanes, through as many waypoints as the step reaches
-            waypoint, progress = planner.next_waypoint(
-                robot, placeholder.mixture, placeholder.tracks, world, progress
-            )
-            if waypoint is None:
-                break
-            nxt = move_towards(robot, waypoint, budget)
-            moved = float(np.hypot(*(nxt - robot)))
-            robot, budget = nxt, budget - moved
-            if moved == 0.0:
-                break
-        region = sensing_region(s, robot)
-        z, _ = sense(sensor, truth.alive_xy, region, sensor_rng)
-        scans.append(Scan(k * s.dt_s, region, z, r_cov, robot.copy()))
-    return ScenarioScans(scans, params, belief)
+    begin = start(s)
+    return ScenarioScans(scans_of(simulate(replace(s, steps=steps))), begin.params, begin.belief)
 
 
 class _Ours:

@@ -32,6 +32,7 @@ from companion.plan.world import World
 from companion.sat.filter import SatParams, SatState, Scan, initial_state, step
 from companion.sat.fov import ConvexPolygon, Disk, Region
 from companion.sat.gp import GpPredictor
+from companion.sat.mixture import Mixture
 from companion.sat.params import FovKind, sat_params
 from companion.sat.tracks import grown_covs
 from companion.sim.belief import initial_belief
@@ -187,9 +188,22 @@ def _json_number(value: Any) -> Any:
     return value
 
 
-def simulate(s: Scenario, progress: Progress | None = None) -> SimResult:
-    """Run one scenario with its seed."""
-    wall_start = time.perf_counter()
+@dataclass(frozen=True, slots=True)
+class Start:
+    """What a run starts from: its world, filter parameters, sensor model, random generators
+    (truth and sensor, derived from the seed), the truth at step 0 and the initial belief."""
+
+    world: World
+    params: SatParams
+    sensor: SensorModel
+    truth_rng: np.random.Generator
+    sensor_rng: np.random.Generator
+    truth: Truth
+    belief: Mixture
+
+
+def start(s: Scenario) -> Start:
+    """The start of a run of scenario s with its seed."""
     world = World(*s.world.size_m)
     params = filter_params(s)
     sensor = SensorModel(
@@ -199,9 +213,7 @@ def simulate(s: Scenario, progress: Progress | None = None) -> SimResult:
         np.random.default_rng(child) for child in np.random.SeedSequence(s.seed).spawn(3)
     )
     tg = s.targets
-    truth: Truth = initial_truth(tg.positions_xy, tg.count, tg.appear, world, truth_rng)
-    n_initial = int(truth.alive.sum())
-    dim = params.linear_model.state_dim
+    truth = initial_truth(tg.positions_xy, tg.count, tg.appear, world, truth_rng)
     belief = initial_belief(
         s.belief.kind,
         s.belief.count,
@@ -211,10 +223,33 @@ def simulate(s: Scenario, progress: Progress | None = None) -> SimResult:
         truth.alive_xy,
         world,
         belief_rng,
-        dim,
+        params.linear_model.state_dim,
         params.velocity_var_m2_s2,
     )
-    state = initial_state(belief, 0.0, params)
+    return Start(world, params, sensor, truth_rng, sensor_rng, truth, belief)
+
+
+def scans_of(result: SimResult) -> list[Scan]:
+    """The scans a run fed its filter, step by step, rebuilt from its robot track and
+    measurements (the sensing region follows from the robot's position)."""
+    s = result.scenario
+    r_cov = s.sensor.noise_std_m**2 * np.eye(2)
+    step_of = result.measurements[:, 0].astype(np.int64)
+    return [
+        Scan(t_s, sensing_region(s, result.robot_xy[k]), result.measurements[step_of == k, 1:],
+             r_cov, result.robot_xy[k].copy())
+        for k, t_s in enumerate(result.t_s.tolist(), start=1)
+    ]
+
+
+def simulate(s: Scenario, progress: Progress | None = None) -> SimResult:
+    """Run one scenario with its seed."""
+    wall_start = time.perf_counter()
+    begin = start(s)
+    world, params, truth, truth_rng = begin.world, begin.params, begin.truth, begin.truth_rng
+    tg = s.targets
+    n_initial = int(truth.alive.sum())
+    state = initial_state(begin.belief, 0.0, params)
     gp = GpPredictor(params.gp)
     planner = scenario_planner(s, world)
     r_cov = s.sensor.noise_std_m**2 * np.eye(2)
@@ -243,7 +278,7 @@ def simulate(s: Scenario, progress: Progress | None = None) -> SimResult:
             planner, robot, state, world, progress_idx, s.robot.speed_m_s * s.dt_s
         )
         region = sensing_region(s, robot)
-        z, is_clutter = sense(sensor, truth.alive_xy, region, sensor_rng)
+        z, is_clutter = sense(begin.sensor, truth.alive_xy, region, begin.sensor_rng)
         scan = Scan(t_s, region, z, r_cov, robot)
         started = time.perf_counter_ns()
         state, _ = step(state, scan, params, gp)
