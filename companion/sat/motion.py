@@ -23,7 +23,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit
 from scipy.optimize import least_squares
 
 from companion.errors import InputError
@@ -60,16 +59,15 @@ class TargetMotion:
 
     def displacement_var_m2(self, tau_s: float) -> float:
         """Per-axis variance (m^2) of the displacement after tau_s seconds (Eq. iou_variance)."""
-        return iou_variance_m2(self.velocity_var_m2_s2, self.correlation_s, tau_s)
+        return float(iou_variance_m2(self.velocity_var_m2_s2, self.correlation_s, tau_s))
 
 
-@njit(cache=True, nogil=True)
-def iou_variance_m2(sv2: float, tau_c_s: float, tau_s: float) -> float:  # pragma: no cover
-    """2 sv2 tau_c^2 (x - 1 + exp(-x)), x = tau / tau_c (Eq. iou_variance); 0 for tau <= 0."""
-    if tau_s <= 0.0 or sv2 == 0.0:
-        return 0.0
-    x = tau_s / tau_c_s
-    return 2.0 * sv2 * tau_c_s * tau_c_s * (x + math.expm1(-x))
+def iou_variance_m2(sv2: float, tau_c_s: float, tau_s: npt.ArrayLike) -> FloatArray:
+    """2 sv2 tau_c^2 (x - 1 + exp(-x)), x = tau / tau_c, elementwise (Eq. iou_variance); 0 where
+    tau <= 0."""
+    x = np.maximum(np.asarray(tau_s, dtype=np.float64), 0.0) / tau_c_s
+    result: FloatArray = 2.0 * sv2 * tau_c_s * tau_c_s * (x + np.expm1(-x))
+    return result
 
 
 def learn_motion(
@@ -82,7 +80,7 @@ def learn_motion(
 
     def residual(theta: FloatArray) -> FloatArray:
         sv2, tau_c, noise2 = np.exp(theta)
-        model = [iou_variance_m2(sv2, tau_c, lag) + 2.0 * noise2 for lag in lags.tolist()]
+        model = iou_variance_m2(sv2, tau_c, lags) + 2.0 * noise2
         return np.asarray(np.log(model) - np.log(variances), dtype=np.float64)
 
     span = float(lags[-1])

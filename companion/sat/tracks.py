@@ -277,14 +277,9 @@ def grown_covs(tracks: Tracks, t_s: float, motion: TargetMotion) -> FloatArray:
     if tracks.size == 0 or motion.speed_m_s == 0.0:
         return tracks.covs
     sv2, tau_c = motion.velocity_var_m2_s2, motion.correlation_s
-    growth = [
-        iou_variance_m2(sv2, tau_c, t_s - seen)
-        - (iou_variance_m2(sv2, tau_c, last - seen) if alone else 0.0)
-        for seen, last, alone in zip(
-            tracks.seen_t_s.tolist(), tracks.last_t_s.tolist(), tracks.alone.tolist(),
-            strict=True,
-        )
-    ]
+    growth = iou_variance_m2(sv2, tau_c, t_s - tracks.seen_t_s) - np.where(
+        tracks.alone, iou_variance_m2(sv2, tau_c, tracks.last_t_s - tracks.seen_t_s), 0.0
+    )
     covs = tracks.covs.copy()
     covs[:, 0, 0] += growth
     covs[:, 1, 1] += growth
