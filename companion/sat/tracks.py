@@ -77,6 +77,14 @@ def _logit(p: float) -> float:
     return math.log(p / (1.0 - p))
 
 
+def _confirmable(hits: IntArray, score: FloatArray, params: TrackParams) -> BoolArray:
+    """Tracks with confirm_length detections whose existence has reached confirm_existence."""
+    result: BoolArray = (hits >= params.confirm_length) & (
+        score >= _logit(params.confirm_existence)
+    )
+    return result
+
+
 class _LogBuffer:
     """Growable storage shared by TrackLog views; only ever written past every view's end."""
 
@@ -510,7 +518,7 @@ def _support(
         win_count = np.minimum(win_count + hit, params.window)
     last_t = tracks.last_t_s.copy()
     last_t[rows] = t_s
-    confirm = (hits >= params.confirm_length) & (score >= _logit(params.confirm_existence))
+    confirm = _confirmable(hits, score, params)
     return Tracks(
         ids=tracks.ids,
         hits=hits,
@@ -559,7 +567,7 @@ def _new_tracks(
         ids=ids,
         hits=hits,
         life=np.ones(k, dtype=np.int64),
-        confirmed=(hits >= params.confirm_length) & (score >= _logit(params.confirm_existence)),
+        confirmed=_confirmable(hits, score, params),
         born_t_s=np.full(k, t_s),
         last_t_s=np.full(k, t_s),
         seen_t_s=np.full(k, t_s),
