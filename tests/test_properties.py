@@ -33,7 +33,9 @@ from numpy.typing import NDArray
 from companion.errors import CompanionError, InputError
 from companion.geo import Utm
 from companion.metrics import mahalanobis_to_tracks, ospa, ospa_components
-from companion.sat.filter import SatParams, SatState, Scan, StepReport, initial_state, step
+from companion.sat.filter import (
+    FilterKind, SatParams, SatState, Scan, StepReport, initial_state, step,
+)
 from companion.sat.fov import ConvexPolygon, Disk, Region
 from companion.sat.gp import GpPredictor
 from companion.sat.mixture import NO_LABEL, Mixture, make_mixture
@@ -67,6 +69,7 @@ def filter_specs(draw: st.DrawFn) -> FilterSpec:
     lo = draw(st.floats(0.0, 1.0))
     hi = draw(st.floats(lo, 1.0))
     return FilterSpec(
+        kind=draw(st.sampled_from(list(FilterKind))),
         p_survive=draw(st.sampled_from([1.0, 0.99]) | st.floats(0.0, 1.0)),
         push_rule=draw(st.booleans()),
         push_band=(lo, hi),
@@ -452,7 +455,7 @@ def test_invalid_scans_raise_input_error(bad: str, push: Literal["paper", "momen
 
 def _valid_spec() -> FilterSpec:
     return FilterSpec(
-        p_survive=1.0, push_rule=True, push_band=(0.4, 0.6), push_mode="moment",
+        kind=FilterKind.GMPHD, p_survive=1.0, push_rule=True, push_band=(0.4, 0.6), push_mode="moment",
         extract_weight=0.5, confirm_length=3, prune_weight=1e-3, merge_distance=10.0,
         max_components=100, motion=MotionModel.GP, process_noise=0.01, birth_weight=1.0,
         birth="adaptive", linear_model="cp", velocity_variance=1.0, gp_sigma_f=2.0,

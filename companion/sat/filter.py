@@ -9,11 +9,13 @@ from __future__ import annotations
 import math
 import numbers
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import numpy as np
 from numpy.typing import NDArray
 
 from companion.errors import InputError
+from companion.sat import lmb
 from companion.sat.birth import BirthWeight, birth, birth_weights
 from companion.sat.extract import extract
 from companion.sat.fov import ConvexPolygon, Disk, Region
@@ -28,10 +30,18 @@ from companion.sat.update import PushMode, PushRule, detection, no_detection, vi
 FloatArray = NDArray[np.float64]
 
 
+class FilterKind(StrEnum):
+    """The estimator, by its TOML name: the paper's GM-PHD or the labeled multi-Bernoulli."""
+
+    GMPHD = "gmphd"
+    LMB = "lmb"
+
+
 @dataclass(frozen=True, slots=True)
 class SatParams:
     """Every parameter of the filter; defaults are the paper's simulation values."""
 
+    kind: FilterKind = FilterKind.GMPHD
     p_survive: float = 1.0
     p_detect: float = 0.98  # p(D|F): detection probability of a target inside the FOV
     clutter_per_scan: float = 0.1  # expected false positives per scan, uniform in the FOV
@@ -99,8 +109,11 @@ def _check_dim(mixture: Mixture, params: SatParams) -> None:
 
 
 def initial_state(mixture: Mixture, t_s: float, params: SatParams) -> SatState:
-    """The state before the first step: the initial belief and no tracks."""
+    """The state before the first step: the initial belief and no tracks (for the LMB, one
+    Bernoulli with a tentative track per unit of the belief's weight, lmb.bernoullis)."""
     _check_dim(mixture, params)
+    if params.kind is FilterKind.LMB:
+        return SatState(t_s, *lmb.bernoullis(mixture, t_s, params))
     return SatState(t_s, mixture, Tracks.empty(mixture.dim, params.gp.window))
 
 
@@ -176,8 +189,16 @@ def _predict(state: SatState, dt_s: float, params: SatParams) -> Mixture:
         return predicted
     return apply_gp(
         predicted, prior, tracks.ids, tracks.confirmed, tracks.gp_fit(), params.gp,
-        state.t_s, state.t_s + dt_s,
+        state.t_s, state.t_s + dt_s, incremental=params.kind is FilterKind.LMB,
     )
+
+
+def _refit_fresh(tracks: Tracks, t_s: float, gp: GpPredictor) -> Tracks:
+    """Only confirmed tracks are predicted by their GP: refit the windows that just changed."""
+    fresh = np.flatnonzero(
+        tracks.confirmed & (tracks.win_count > 0) & (tracks.win_t_s[:, -1] == t_s)
+    )
+    return tracks.refit_gp(fresh, gp)
 
 
 def step(
@@ -208,6 +229,12 @@ def step(
     r_cov = _checked_r(scan.r_cov)
 
     predicted = _predict(state, scan.t_s - state.t_s, params)
+    if params.kind is FilterKind.LMB:
+        mixture, tracks, estimates = lmb.step(
+            state.tracks, predicted, region, z, r_cov, sensor_xy, scan.t_s, params
+        )
+        tracks = _refit_fresh(tracks, scan.t_s, gp)
+        return SatState(scan.t_s, mixture, tracks), StepReport(estimates, dropped, region is None)
     dim = predicted.dim
     if region is None:
         posterior = predicted
@@ -260,10 +287,6 @@ def step(
     tracks, labelled = maintain(
         state.tracks, reduced, est_rows, detected_reduced, scan.t_s, params.tracks, evidence
     )
-    # Only confirmed tracks are predicted by their GP: refit the windows that just changed.
-    fresh = np.flatnonzero(
-        tracks.confirmed & (tracks.win_count > 0) & (tracks.win_t_s[:, -1] == scan.t_s)
-    )
-    tracks = tracks.refit_gp(fresh, gp)
+    tracks = _refit_fresh(tracks, scan.t_s, gp)
     report = StepReport(int(est_index.size), dropped, region is None)
     return SatState(scan.t_s, labelled, tracks), report

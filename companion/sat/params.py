@@ -14,7 +14,7 @@ from typing import Literal
 
 from companion.keys import Bool, Choice, Float, Int, Key, Pair
 from companion.sat.birth import BirthWeight
-from companion.sat.filter import SatParams
+from companion.sat.filter import FilterKind, SatParams
 from companion.sat.gp import GpParams
 from companion.sat.motion import TargetMotion
 from companion.sat.predict import LinearModel
@@ -41,8 +41,9 @@ class FovKind(StrEnum):
 
 @dataclass(frozen=True, slots=True)
 class FilterSpec:
-    """Parameters of the GM-PHD search-and-track filter."""
+    """Parameters of the search-and-track filter."""
 
+    kind: FilterKind
     p_survive: float
     push_rule: bool
     push_band: tuple[float, float]
@@ -75,6 +76,9 @@ _MOTION = TargetMotion()
 _TRACKS = TrackParams()
 
 FILTER_KEYS: tuple[Key, ...] = (
+    Key("kind", Choice(*FilterKind), "gmphd",
+        "the estimator: \"gmphd\" (the paper's GM-PHD) or \"lmb\" (the labeled "
+        "multi-Bernoulli filter, one existence probability and track id per target)"),
     Key("p_survive", Float(ge=0, le=1), 1.0, "survival probability p_S"),
     Key("push_rule", Bool(), True, "the paper's limited-FOV update rule"),
     Key("push_band", Pair(Float(ge=0, le=1), ordered=True), [0.4, 0.6],
@@ -140,6 +144,7 @@ def sat_params(f: FilterSpec, p_detect: float, clutter_per_scan: float, dt_s: fl
     motion = TargetMotion(f.target_speed, f.manoeuvre_time)
     step_var_m2 = max(f.process_noise, motion.displacement_var_m2(dt_s))
     return SatParams(
+        kind=FilterKind(f.kind),
         p_survive=f.p_survive,
         p_detect=p_detect,
         clutter_per_scan=clutter_per_scan,

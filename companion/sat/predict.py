@@ -86,6 +86,7 @@ def apply_gp(
     params: GpParams,
     t_before_s: float,
     t_now_s: float,
+    incremental: bool = False,
 ) -> Mixture:
     """Predict the components of confirmed tracks by their GP regression, not the linear model.
 
@@ -100,8 +101,9 @@ def apply_gp(
     means = predicted.means.copy()
     covs = predicted.covs.copy()
     _apply_gp_kernel(
-        prior.labels, prior.covs, track_ids, confirmed, fit.t_s, fit.count, fit.mu, fit.beta,
-        fit.ky_inv, params.sigma_f_m**2, params.lengthscale_s, t_before_s, t_now_s, means, covs,
+        prior.labels, prior.means, prior.covs, track_ids, confirmed, fit.t_s, fit.count, fit.mu,
+        fit.beta, fit.ky_inv, params.sigma_f_m**2, params.lengthscale_s, t_before_s, t_now_s,
+        incremental, means, covs,
     )
     return Mixture(predicted.weights, means, covs, predicted.labels)
 
@@ -109,6 +111,7 @@ def apply_gp(
 @njit(cache=True, nogil=True)
 def _apply_gp_kernel(  # pragma: no cover - compiled; tested through apply_gp
     labels: NDArray[np.int64],
+    prior_means: FloatArray,
     prior_covs: FloatArray,
     track_ids: NDArray[np.int64],
     confirmed: NDArray[np.bool_],
@@ -121,6 +124,7 @@ def _apply_gp_kernel(  # pragma: no cover - compiled; tested through apply_gp
     lam: float,
     t_before: float,
     t_now: float,
+    incremental: bool,
     means: FloatArray,
     covs: FloatArray,
 ) -> None:
@@ -144,7 +148,11 @@ def _apply_gp_kernel(  # pragma: no cover - compiled; tested through apply_gp
             t_s, count, mu, beta, ky_inv, row, times, sf2, lam, mean, var, velocity
         )
         growth = max(var[0, 0] - var[1, 0], 0.0)
-        means[j, 0], means[j, 1] = mean[0, 0, 0], mean[0, 0, 1]
+        if incremental:
+            means[j, 0] = prior_means[j, 0] + mean[0, 0, 0] - mean[1, 0, 0]
+            means[j, 1] = prior_means[j, 1] + mean[0, 0, 1] - mean[1, 0, 1]
+        else:
+            means[j, 0], means[j, 1] = mean[0, 0, 0], mean[0, 0, 1]
         covs[j, 0, 0] = prior_covs[j, 0, 0] + growth
         covs[j, 1, 1] = prior_covs[j, 1, 1] + growth
         covs[j, 0, 1], covs[j, 1, 0] = prior_covs[j, 0, 1], prior_covs[j, 1, 0]

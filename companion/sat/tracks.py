@@ -152,7 +152,8 @@ class Tracks:
     last_t_s: FloatArray  # (T,) time of the last support
     seen_t_s: FloatArray  # (T,) time of the last detection (its birth, if never detected)
     score: FloatArray  # (T,) log-likelihood ratio of existence (Eq. track_score_*)
-    alone: BoolArray  # (T,) coasting with no component: means/covs are its own belief
+    alone: BoolArray  # (T,) means/covs are the track's own belief, grown to last_t_s: a GM-PHD
+    # track coasting with no component, or every LMB track (a Bernoulli's own moments)
     means: FloatArray  # (T, d) state at the last support
     covs: FloatArray  # (T, d, d) of the supporting component at last_t_s (see grown_covs)
     win_t_s: FloatArray  # (T, W) times of the most recent detections, right-aligned
@@ -549,10 +550,12 @@ def _new_tracks(
     mix: Mixture,
     t_s: float,
     params: TrackParams,
+    existence: FloatArray | None = None,
 ) -> Tracks:
     """One new tentative track per unassigned estimate (component rows `comp`), with fresh ids.
 
-    Its score starts at the logit of its component's weight, the PHD's own belief in it.
+    Its score starts at the logit of `existence`, by default of its component's weight (the
+    PHD's own belief in it, within [0.01, 0.99]).
     """
     k = comp.shape[0]
     ids = tracks.next_id + np.arange(k, dtype=np.int64)
@@ -561,7 +564,7 @@ def _new_tracks(
     win_xy = np.zeros((k, params.window, 2))
     win_t[:, -1] = t_s
     win_xy[:, -1] = mix.means[comp, :2]  # only counted (win_count) when it is a detection
-    w = np.clip(mix.weights[comp], 0.01, 0.99)
+    w = np.clip(mix.weights[comp], 0.01, 0.99) if existence is None else existence
     score = np.log(w / (1.0 - w))
     return Tracks(
         ids=ids,

@@ -1,0 +1,321 @@
+"""The labeled multi-Bernoulli (LMB) filter with a limited field of view, as pure functions.
+
+After Reuter, Vo, Vo & Dietmayer 2014. The LMB lives in the same SatState as the GM-PHD: every
+mixture component is labelled, the components of label l form Bernoulli l, and their weights are
+r_l times its spatial mixture, so that the mixture is the LMB's PHD (what planners and reports
+read) and r_l = sum of the weights with label l. Each Bernoulli has one row in Tracks, whose id is
+its label; the row's score is logit(r_l) (Tracks.existence is r) and its mean and covariance are
+the Bernoulli's moments (`alone`: already its own honest belief, grown while unseen).
+
+One update, for the Bernoullis l and measurements z_i of a frame with footprint F:
+    p_D,j = p(D|F) p(F)_j per component j                        # Eq. prob_of_detection
+    phi_l(undetected) = 1 - sum_j w_j p_D,j                       # absent, or present and missed
+    phi_l(i) = sum_j w_j p_D,j N(z_i; H m_j, S_j) / kappa         # z_i is l's, not clutter
+and the joint association hypotheses of each cluster of Bernoullis that share gated measurements
+(each measurement used at most once) weigh prod_l phi_l(theta_l). Their marginals give
+    r_l' = P_l(undetected) (r_l - sum_j w_j p_D,j) / phi_l(undetected) + sum_i P_l(i)   # Eq. lmb_r
+and a spatial mixture of the missed-detection components (the exact no-detection moments of the
+"moment" push rule) and the Kalman-updated ones. Clusters of one Bernoulli are solved in closed
+form; larger ones by ranked assignment (companion.sat.assign, a capped number of hypotheses).
+Adaptive birth: a measurement that the existing Bernoullis explain with probability r_U(z) gives
+a new Bernoulli with r_B(z) = (1 - r_U(z)) b / (b + kappa) (Eq. lmb_birth), b the birth intensity.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from companion.sat.assign import k_best
+from companion.sat.birth import birth
+from companion.sat.fov import Region
+from companion.sat.linalg import inv_det_2x2
+from companion.sat.mixture import Mixture
+from companion.sat.reduce import _moment_match, merge, prune
+from companion.sat.tracks import TrackParams, Tracks, _absorb, _concat, _new_tracks
+from companion.sat.update import PushMode, detection, no_detection, visibility
+
+if TYPE_CHECKING:
+    from companion.sat.filter import SatParams
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+BoolArray = NDArray[np.bool_]
+
+MAX_HYPOTHESES = 200
+"""Association hypotheses kept per cluster of Bernoullis that share measurements."""
+
+_HYPOTHESIS_GAP = math.log(1e6)
+"""Hypotheses a million times less likely than a cluster's best are not enumerated."""
+
+_TINY = 1e-300
+
+
+@dataclass(frozen=True, slots=True)
+class Association:
+    """Marginal association probabilities of one frame, per track row (Bernoulli)."""
+
+    undetected: FloatArray  # (L,) P_l(undetected): absent, or present and missed
+    detected: FloatArray  # (m, L) P_l(i): measurement i is Bernoulli l's
+
+
+def bernoullis(mixture: Mixture, t_s: float, params: SatParams) -> tuple[Mixture, Tracks]:
+    """The initial belief as Bernoullis: a component of weight w becomes ceil(w) Bernoullis of
+    existence w / ceil(w) (at most max_existence), each with a tentative track row."""
+    copies = np.maximum(np.ceil(mixture.weights - 1e-9), 1).astype(np.int64)
+    prior = mixture.take(np.repeat(np.arange(mixture.size), copies))
+    r = np.minimum(prior.weights / np.repeat(copies, copies), params.tracks.max_existence)
+    prior = Mixture(r, prior.means, prior.covs, prior.labels)
+    tracks = Tracks.empty(mixture.dim, params.gp.window)
+    if prior.size == 0:
+        return prior, tracks
+    rows = np.arange(prior.size)
+    born = _new_tracks(tracks, rows, np.zeros(prior.size, dtype=bool), prior, t_s,
+                       params.tracks, existence=r)
+    labelled = Mixture(r, prior.means, prior.covs, born.ids)
+    return labelled, _concat(tracks, born)
+
+
+def _rows(tracks: Tracks, labels: IntArray) -> IntArray:
+    """The track row of each label (every LMB component is labelled with a live track)."""
+    rows: IntArray = np.searchsorted(tracks.ids, labels)
+    return rows
+
+
+def _per_row(row: IntArray, values: FloatArray, n_rows: int) -> FloatArray:
+    """(n_rows,) the sum of values over the components of each row (float even when empty)."""
+    sums: FloatArray = np.bincount(row, values, n_rows).astype(np.float64, copy=False)
+    return sums
+
+
+def associate(phi_undetected: FloatArray, phi: FloatArray) -> Association:
+    """Marginal association probabilities from the hypothesis factors (see the module).
+
+    `phi_undetected` (L,) > 0; `phi` (m, L) >= 0, zero where a measurement is outside a
+    Bernoulli's gate. Clusters of Bernoullis linked by shared measurements are independent.
+    """
+    m, n = phi.shape
+    undetected = np.ones(n)
+    detected = np.zeros((m, n))
+    gated_i, gated_l = np.nonzero(phi > 0.0)
+    if gated_i.size == 0:
+        return Association(undetected, detected)
+    # A bipartite graph: nodes 0..n-1 are Bernoullis, n..n+m-1 measurements.
+    graph = coo_matrix(
+        (np.ones(gated_i.size), (gated_l, n + gated_i)), shape=(n + m, n + m)
+    )
+    _, component = connected_components(graph, directed=False)
+    involved = np.unique(gated_l)
+    for c in np.unique(component[involved]):
+        bern = involved[component[involved] == c]
+        meas = np.unique(gated_i[np.isin(gated_l, bern)])
+        sub = phi[np.ix_(meas, bern)]
+        if bern.size == 1:  # one Bernoulli: undetected or one of its measurements
+            total = phi_undetected[bern[0]] + sub[:, 0].sum()
+            undetected[bern[0]] = phi_undetected[bern[0]] / total
+            detected[meas, bern[0]] = sub[:, 0] / total
+            continue
+        p_undet, p_det = _ranked(phi_undetected[bern], sub)
+        undetected[bern] = p_undet
+        detected[np.ix_(meas, bern)] = p_det
+    return Association(undetected, detected)
+
+
+def _ranked(phi_undetected: FloatArray, phi: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Marginals of one cluster from its MAX_HYPOTHESES best hypotheses (Murty's ranked
+    assignment on costs -log phi: a Bernoulli takes one measurement or its own undetected
+    column)."""
+    m, n = phi.shape
+    cost = np.full((n, m + n), np.inf)
+    with np.errstate(divide="ignore"):
+        cost[:, :m] = -np.log(phi.T)
+    cost[np.arange(n), m + np.arange(n)] = -np.log(phi_undetected)
+    hypotheses = k_best(cost, MAX_HYPOTHESES, _HYPOTHESIS_GAP)
+    totals = np.array([h[0] for h in hypotheses])
+    weights = np.exp(-(totals - totals[0]))
+    weights /= weights.sum()
+    undetected = np.zeros(n)
+    detected = np.zeros((m, n))
+    cols = np.array([h[1] for h in hypotheses])  # (H, n)
+    for b in range(n):
+        took = cols[:, b]
+        own = took >= m
+        undetected[b] = weights[own].sum()
+        np.add.at(detected[:, b], took[~own], weights[~own])
+    return undetected, detected
+
+
+def update(
+    predicted: Mixture,
+    tracks: Tracks,
+    region: Region,
+    z: FloatArray,
+    r_cov: FloatArray,
+    sensor_xy: FloatArray,
+    params: SatParams,
+) -> tuple[Mixture, Association, FloatArray]:
+    """The LMB update of one frame (Eq. lmb_r) and the birth existences of its measurements.
+
+    Returns the updated mixture (missed-detection then detection components, unreduced), the
+    association marginals and r_B (m,) (Eq. lmb_birth).
+    """
+    area = region.area_m2
+    b = params.birth_weight / area  # intensity of measurements from targets not yet seen
+    kappa = max(params.clutter_per_scan / area, _TINY) + b  # clutter and newborn intensity
+    n_rows, m = tracks.size, z.shape[0]
+    moments = params.push is not None and params.push.mode is PushMode.MOMENT
+    vis = visibility(predicted, region, params.p_detect, moments)
+    row = _rows(tracks, predicted.labels)
+    seen_mass = _per_row(row, predicted.weights * vis.p_d, n_rows)
+    phi_undetected = np.maximum(1.0 - seen_mass, _TINY)
+    found = detection(predicted, vis.p_d, z, r_cov, kappa, 0.0)
+    n = predicted.size
+    raw = found.children.weights.reshape(m, n) * np.maximum(kappa + found.explained, _TINY)[:, None]
+    raw *= _in_gate(predicted, z, r_cov, params.tracks.gate_sq)
+    phi = np.zeros((m, n_rows))
+    for i in range(m):
+        phi[i] = _per_row(row, raw[i], n_rows) / kappa
+    assoc = associate(phi_undetected, phi)
+    missed = no_detection(predicted, vis, sensor_xy, params.push)
+    missed_scale = assoc.undetected / phi_undetected
+    with np.errstate(divide="ignore", invalid="ignore"):
+        det_scale = np.where(phi > 0.0, assoc.detected / (kappa * phi), 0.0)
+    children = found.children
+    posterior = Mixture.concat([
+        Mixture(missed.weights * missed_scale[row], missed.means, missed.covs, missed.labels),
+        Mixture((raw * det_scale[:, row]).reshape(-1), children.means, children.covs,
+                children.labels),
+    ])
+    r_unexplained = np.clip(1.0 - assoc.detected.sum(axis=1), 0.0, 1.0)
+    r_birth = np.minimum(r_unexplained * b / kappa, params.tracks.max_existence)
+    return posterior, assoc, r_birth
+
+
+def _in_gate(pred: Mixture, z: FloatArray, r_cov: FloatArray, gate_sq: float) -> FloatArray:
+    """(m, n) 1 where measurement i lies within component j's gate (d^2 <= gate_sq under
+    P + R), else 0."""
+    diff = z[:, None, :] - pred.means[None, :, :2]
+    inv, _ = inv_det_2x2(pred.covs[:, :2, :2] + r_cov)
+    d2 = np.einsum("mni,nij,mnj->mn", diff, inv, diff)
+    gated: FloatArray = (d2 <= gate_sq).astype(np.float64)
+    return gated
+
+
+def step(
+    tracks: Tracks,
+    predicted: Mixture,
+    region: Region | None,
+    z: FloatArray,
+    r_cov: FloatArray,
+    sensor_xy: FloatArray,
+    t_s: float,
+    params: SatParams,
+) -> tuple[Mixture, Tracks, int]:
+    """One LMB step after prediction: update, birth, pruning and merging within each Bernoulli,
+    and the track rows; returns the mixture, the tracks and the number of Bernoullis with
+    r > extract_weight. A blind step (region None) updates nothing."""
+    n_rows = tracks.size
+    detected_p = np.zeros(n_rows)
+    posterior = predicted
+    born = Mixture.empty(predicted.dim)
+    if region is not None:
+        posterior, assoc, r_birth = update(predicted, tracks, region, z, r_cov, sensor_xy, params)
+        detected_p = assoc.detected.sum(axis=0)
+        new = np.flatnonzero(r_birth >= max(params.prune_weight, _TINY))
+        born = birth(z[new], r_birth[new], r_cov, params.velocity_var_m2_s2, predicted.dim)
+    pruned, _ = prune(posterior, params.prune_weight)
+    reduced = merge(pruned, params.merge_distance_sq, params.max_components).mixture
+    birth_per_m2 = None if region is None else params.birth_weight / region.area_m2
+    return _maintain(tracks, reduced, detected_p, born, t_s, params, birth_per_m2)
+
+
+def _maintain(
+    tracks: Tracks,
+    mix: Mixture,
+    detected_p: FloatArray,
+    born: Mixture,
+    t_s: float,
+    params: SatParams,
+    birth_per_m2: float | None,
+) -> tuple[Mixture, Tracks, int]:
+    """The track rows of the Bernoullis after this step: existence, moments, detections, GP
+    windows and confirmation; a Bernoulli ends when its components are pruned away, or when it
+    is a confirmed track whose existence fell below drop_existence."""
+    tp = params.tracks
+    row = _rows(tracks, mix.labels)
+    r = _per_row(row, mix.weights, tracks.size)
+    capped = np.minimum(r, tp.max_existence)
+    scale = np.divide(capped, r, out=np.ones_like(r), where=r > 0.0)
+    weights = mix.weights * scale[row]
+    hit = detected_p > 0.5
+    hits = tracks.hits + hit
+    score = np.log(np.maximum(capped, _TINY)) - np.log(np.maximum(1.0 - capped, _TINY))
+    confirmed = tracks.confirmed | ((hits >= tp.confirm_length) & (capped >= tp.confirm_existence))
+    alive = (r > 0.0) & ~(confirmed & (capped < tp.drop_existence))
+    summary = _moment_match(Mixture(weights, mix.means, mix.covs, mix.labels), row, tracks.size)
+    seen = np.flatnonzero(hit & alive)
+    win_t, win_xy, win_count = tracks.win_t_s, tracks.win_xy, tracks.win_count
+    if seen.size:
+        win_t, win_xy = win_t.copy(), win_xy.copy()
+        win_t[seen, :-1] = win_t[seen, 1:]
+        win_xy[seen, :-1] = win_xy[seen, 1:]
+        win_t[seen, -1] = t_s
+        win_xy[seen, -1] = summary.means[seen, :2]
+        win_count = np.minimum(win_count + hit, tp.window)
+    updated = replace(
+        tracks,
+        hits=hits,
+        life=tracks.life + 1,
+        confirmed=confirmed,
+        last_t_s=np.full(tracks.size, t_s),
+        seen_t_s=np.where(hit, t_s, tracks.seen_t_s),
+        score=score,
+        means=np.where(r[:, None] > 0.0, summary.means, tracks.means),
+        covs=np.where(r[:, None, None] > 0.0, summary.covs, tracks.covs),
+        win_t_s=win_t,
+        win_xy=win_xy,
+        win_count=win_count,
+    )
+    keep = alive[row]
+    mix = Mixture(weights[keep], mix.means[keep], mix.covs[keep], mix.labels[keep])
+    survivors = updated.take(alive)
+    was_confirmed = np.concatenate([tracks.confirmed[alive], np.zeros(born.size, dtype=bool)])
+    survivors = replace(survivors, log=survivors.log.append(
+        survivors.ids, t_s, survivors.means, survivors.covs))
+    if born.size:
+        rows = np.arange(born.size)
+        new = _new_tracks(survivors, rows, np.ones(born.size, dtype=bool), born, t_s, tp,
+                          existence=born.weights)
+        mix = Mixture.concat([mix, Mixture(born.weights, born.means, born.covs, new.ids)])
+        survivors = _concat(survivors, new)
+    if params.tracks.motion.speed_m_s > 0.0 and birth_per_m2 is not None:
+        survivors, mix = _refound(survivors, mix, was_confirmed, t_s, params.tracks, birth_per_m2)
+    extracted = int(np.count_nonzero(survivors.existence > params.extract_weight))
+    return mix, survivors, extracted
+
+
+def _refound(
+    tracks: Tracks,
+    mix: Mixture,
+    was_confirmed: BoolArray,
+    t_s: float,
+    params: TrackParams,
+    birth_per_m2: float,
+) -> tuple[Tracks, Mixture]:
+    """A Bernoulli confirmed this step that is a mover's confirmed track found again (tracks'
+    Eq. refound, with the old track's honest covariance) takes the old track's label; the old
+    Bernoulli, whose components stayed where the target was last seen, ends."""
+    before = mix.labels
+    tracks, labels = _absorb(tracks, before.copy(), was_confirmed, t_s, params, birth_per_m2)
+    changed = labels != before
+    if not changed.any():
+        return tracks, mix
+    stale = np.isin(before, labels[changed]) & ~changed
+    keep = ~stale
+    return tracks, Mixture(mix.weights[keep], mix.means[keep], mix.covs[keep], labels[keep])
