@@ -34,7 +34,13 @@ from companion.errors import CompanionError, InputError
 from companion.geo import Utm
 from companion.metrics import mahalanobis_to_tracks, ospa, ospa_components
 from companion.sat.filter import (
-    FilterKind, SatParams, SatState, Scan, StepReport, initial_state, step,
+    FilterKind,
+    SatParams,
+    SatState,
+    Scan,
+    StepReport,
+    initial_state,
+    step,
 )
 from companion.sat.fov import ConvexPolygon, Disk, Region
 from companion.sat.gp import GpPredictor
@@ -455,7 +461,8 @@ def test_invalid_scans_raise_input_error(bad: str, push: Literal["paper", "momen
 
 def _valid_spec() -> FilterSpec:
     return FilterSpec(
-        kind=FilterKind.GMPHD, p_survive=1.0, push_rule=True, push_band=(0.4, 0.6), push_mode="moment",
+        kind=FilterKind.GMPHD, p_survive=1.0, push_rule=True, push_band=(0.4, 0.6),
+        push_mode="moment",
         extract_weight=0.5, confirm_length=3, prune_weight=1e-3, merge_distance=10.0,
         max_components=100, motion=MotionModel.GP, process_noise=0.01, birth_weight=1.0,
         birth="adaptive", linear_model="cp", velocity_variance=1.0, gp_sigma_f=2.0,
