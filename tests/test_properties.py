@@ -305,9 +305,14 @@ def _check_state(state: SatState, params: SatParams, report: StepReport, scan: S
     assert np.all(np.isfinite(mix.means))
     _assert_spd(mix.covs, "mixture")
     assert n <= params.max_components
-    assert report.estimates == int(
-        np.maximum(np.floor(mix.weights[mix.weights > params.extract_weight] + 0.5), 1).sum()
-    )
+    lmb = params.kind is FilterKind.LMB
+    if lmb:  # a Bernoulli is one target: estimates are the Bernoullis with r > extract_weight
+        assert report.estimates == int(np.count_nonzero(
+            state.tracks.existence > params.extract_weight))
+    else:
+        assert report.estimates == int(
+            np.maximum(np.floor(mix.weights[mix.weights > params.extract_weight] + 0.5), 1).sum()
+        )
     assert report.blind == (scan.region is None or not np.all(np.isfinite(scan.sensor_xy)))
 
     tracks = state.tracks
@@ -338,8 +343,17 @@ def _check_state(state: SatState, params: SatParams, report: StepReport, scan: S
         assert np.all(np.isfinite(getattr(tracks, name))), name
     _assert_spd(tracks.covs, "tracks")
     labelled = mix.labels[mix.labels != NO_LABEL]
-    assert np.unique(labelled).size == labelled.size, "one component per track"
     assert np.all(np.isin(labelled, tracks.ids)), "every label is a live track"
+    if not lmb:
+        assert np.unique(labelled).size == labelled.size, "one component per track"
+        return
+    # The LMB: every component belongs to a Bernoulli, whose existence is its weight sum, and
+    # the total existence is the expected number of targets.
+    assert labelled.size == n, "every LMB component is labelled"
+    r = np.array([mix.weights[mix.labels == i].sum() for i in tracks.ids])
+    np.testing.assert_allclose(r, tracks.existence, rtol=1e-9, atol=1e-12)
+    assert np.all(r <= params.tracks.max_existence * (1 + 1e-12))
+    assert math.isclose(r.sum(), mix.total_weight, rel_tol=1e-9, abs_tol=1e-12)
 
 
 # ---------------------------------------------------------------------------------------------

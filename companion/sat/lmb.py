@@ -68,6 +68,7 @@ class Association:
 def bernoullis(mixture: Mixture, t_s: float, params: SatParams) -> tuple[Mixture, Tracks]:
     """The initial belief as Bernoullis: a component of weight w becomes ceil(w) Bernoullis of
     existence w / ceil(w) (at most max_existence), each with a tentative track row."""
+    mixture = mixture.take(mixture.weights > 0.0)  # (no Bernoulli for a target that is not)
     copies = np.maximum(np.ceil(mixture.weights - 1e-9), 1).astype(np.int64)
     prior = mixture.take(np.repeat(np.arange(mixture.size), copies))
     r = np.minimum(prior.weights / np.repeat(copies, copies), params.tracks.max_existence)
@@ -220,34 +221,38 @@ def step(
     """One LMB step after prediction: update, birth, pruning and merging within each Bernoulli,
     and the track rows; returns the mixture, the tracks and the number of Bernoullis with
     r > extract_weight. A blind step (region None) updates nothing."""
-    n_rows = tracks.size
-    detected_p = np.zeros(n_rows)
+    detected_p = np.zeros(tracks.size)
     posterior = predicted
-    born = Mixture.empty(predicted.dim)
     if region is not None:
         posterior, assoc, r_birth = update(predicted, tracks, region, z, r_cov, sensor_xy, params)
         detected_p = assoc.detected.sum(axis=0)
-        new = np.flatnonzero(r_birth >= max(params.prune_weight, _TINY))
-        born = birth(z[new], r_birth[new], r_cov, params.velocity_var_m2_s2, predicted.dim)
+        born = birth(z, r_birth, r_cov, params.velocity_var_m2_s2, predicted.dim)
+        # Newborn Bernoullis take provisional labels past every track id: they never merge
+        # with another Bernoulli, and the cap on components counts them.
+        labels = tracks.next_id + np.arange(born.size, dtype=np.int64)
+        posterior = Mixture.concat([posterior, replace(born, labels=labels)])
     pruned, _ = prune(posterior, params.prune_weight)
     reduced = merge(pruned, params.merge_distance_sq, params.max_components).mixture
     birth_per_m2 = None if region is None else params.birth_weight / region.area_m2
-    return _maintain(tracks, reduced, detected_p, born, t_s, params, birth_per_m2)
+    return _maintain(tracks, reduced, detected_p, t_s, params, birth_per_m2)
 
 
 def _maintain(
     tracks: Tracks,
-    mix: Mixture,
+    reduced: Mixture,
     detected_p: FloatArray,
-    born: Mixture,
     t_s: float,
     params: SatParams,
     birth_per_m2: float | None,
 ) -> tuple[Mixture, Tracks, int]:
     """The track rows of the Bernoullis after this step: existence, moments, detections, GP
     windows and confirmation; a Bernoulli ends when its components are pruned away, or when it
-    is a confirmed track whose existence fell below drop_existence."""
+    is a confirmed track whose existence fell below drop_existence. Components labelled past
+    the last track id are newborn Bernoullis (one component each): they get new rows."""
     tp = params.tracks
+    newborn = reduced.labels >= tracks.next_id
+    born = reduced.take(newborn)
+    mix = reduced.take(~newborn)
     row = _rows(tracks, mix.labels)
     r = _per_row(row, mix.weights, tracks.size)
     capped = np.minimum(r, tp.max_existence)
@@ -292,7 +297,7 @@ def _maintain(
         rows = np.arange(born.size)
         new = _new_tracks(survivors, rows, np.ones(born.size, dtype=bool), born, t_s, tp,
                           existence=born.weights)
-        mix = Mixture.concat([mix, Mixture(born.weights, born.means, born.covs, new.ids)])
+        mix = Mixture.concat([mix, replace(born, labels=new.ids)])
         survivors = _concat(survivors, new)
     if params.tracks.motion.speed_m_s > 0.0 and birth_per_m2 is not None:
         survivors, mix = _refound(survivors, mix, was_confirmed, t_s, params.tracks, birth_per_m2)
