@@ -334,7 +334,8 @@ def _check_state(state: SatState, params: SatParams, report: StepReport, scan: S
     assert np.all(~tracks.confirmed | (tracks.hits >= params.tracks.confirm_length)), (
         "a confirmed track has confirm_length detections"
     )
-    assert np.all(~tracks.alone | tracks.confirmed), "only confirmed tracks coast alone"
+    if params.kind is FilterKind.GMPHD:
+        assert np.all(~tracks.alone | tracks.confirmed), "only confirmed tracks coast alone"
     assert np.all(np.isfinite(tracks.score)), "track scores finite"
     assert np.all((tracks.existence >= 0.0) & (tracks.existence <= 1.0))
     assert np.all(tracks.born_t_s <= tracks.seen_t_s) and np.all(tracks.seen_t_s <= state.t_s)

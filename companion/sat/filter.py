@@ -230,6 +230,7 @@ def step(
 
     predicted = _predict(state, scan.t_s - state.t_s, params)
     if params.kind is FilterKind.LMB:
+        predicted = lmb.grow_unseen(predicted, state.tracks, state.t_s, scan.t_s, params.tracks)
         mixture, tracks, estimates = lmb.step(
             state.tracks, predicted, region, z, r_cov, sensor_xy, scan.t_s, params
         )

@@ -34,11 +34,12 @@ from scipy.sparse.csgraph import connected_components
 
 from companion.sat.assign import k_best
 from companion.sat.birth import birth
-from companion.sat.fov import Region
+from companion.sat.fov import Region, prob_in_region, truncation_moments
 from companion.sat.linalg import inv_det_2x2
 from companion.sat.mixture import Mixture
+from companion.sat.motion import TargetMotion, iou_variance_m2
 from companion.sat.reduce import _moment_match, merge, prune
-from companion.sat.tracks import TrackParams, Tracks, _absorb, _concat, _new_tracks
+from companion.sat.tracks import TrackParams, Tracks, _concat, _new_tracks
 from companion.sat.update import PushMode, detection, no_detection, visibility
 
 if TYPE_CHECKING:
@@ -81,6 +82,72 @@ def bernoullis(mixture: Mixture, t_s: float, params: SatParams) -> tuple[Mixture
                        params.tracks, existence=r)
     labelled = Mixture(r, prior.means, prior.covs, born.ids)
     return labelled, _concat(tracks, born)
+
+
+def grow_unseen(
+    predicted: Mixture, tracks: Tracks, t_before_s: float, t_now_s: float, params: TrackParams
+) -> Mixture:
+    """The components of confirmed tracks with the motion class's displacement variance added
+    for the step (Eq. iou_variance), and every component's mass outside the search area gone
+    (targets stay in it: p_S(x) = 1_A(x), with the truncated moments): a Bernoulli's own
+    covariance says how far its target may have gone since its last detection."""
+    motion = params.motion
+    covs = predicted.covs
+    if motion.speed_m_s > 0.0 and predicted.size and tracks.confirmed.any():
+        seen = tracks.seen_t_s
+        sv2, tau_c = motion.velocity_var_m2_s2, motion.correlation_s
+        growth = iou_variance_m2(sv2, tau_c, t_now_s - seen) - iou_variance_m2(
+            sv2, tau_c, t_before_s - seen
+        )
+        row = _rows(tracks, predicted.labels)
+        movers = tracks.confirmed & seen_moving(tracks, motion)
+        add = np.where(movers[row], growth[row], 0.0)
+        covs = covs.copy()
+        covs[:, 0, 0] += add
+        covs[:, 1, 1] += add
+    grown = Mixture(predicted.weights, predicted.means, covs, predicted.labels)
+    if params.area is None or grown.size == 0:
+        return grown
+    mass = prob_in_region(grown.means[:, :2], grown.covs[:, :2, :2], params.area, check=False)
+    edge = np.flatnonzero((mass < 1.0 - 1e-9) & (mass > 1e-6))
+    weights = np.where(mass > 1e-6, grown.weights, 0.0)  # (all but gone from the area: gone)
+    if edge.size == 0:
+        return Mixture(weights, grown.means, grown.covs, grown.labels)
+    means, covs = grown.means.copy(), grown.covs.copy()
+    inside, first, second = truncation_moments(
+        means[edge, :2], covs[edge, :2, :2], params.area, check=False
+    )
+    shift = first / inside[:, None]
+    means[edge, :2] += shift
+    covs[edge, :2, :2] = second / inside[:, None, None] - shift[:, :, None] * shift[:, None, :]
+    if grown.dim == 4:
+        covs[edge, :2, 2:] = 0.0
+        covs[edge, 2:, :2] = 0.0
+    weights[edge] *= mass[edge]
+    return Mixture(weights, means, covs, grown.labels)
+
+
+def seen_moving(tracks: Tracks, motion: TargetMotion) -> BoolArray:
+    """(T,) tracks whose detected positions moved over their GP window: the least-squares
+    displacement over the window's span exceeds half the class's typical displacement in that
+    time (Eq. iou_variance). A target seen standing still is not grown while unseen."""
+    count = tracks.win_count
+    w = tracks.win_t_s.shape[1]
+    valid = np.arange(w)[None, :] >= (w - count)[:, None]
+    n = np.maximum(count, 1)[:, None]
+    t = np.where(valid, tracks.win_t_s, 0.0)
+    t_mean = t.sum(axis=1, keepdims=True) / n
+    dt = np.where(valid, tracks.win_t_s - t_mean, 0.0)
+    xy_mean = np.where(valid[..., None], tracks.win_xy, 0.0).sum(axis=1) / n
+    dxy = np.where(valid[..., None], tracks.win_xy - xy_mean[:, None, :], 0.0)
+    sxx = (dt * dt).sum(axis=1)
+    velocity = (dt[..., None] * dxy).sum(axis=1) / np.maximum(sxx, _TINY)[:, None]
+    span = np.where(count > 0, tracks.win_t_s[:, -1] - np.where(
+        valid, tracks.win_t_s, np.inf).min(axis=1), 0.0)
+    moved_sq = (velocity**2).sum(axis=1) * span**2
+    typical_sq = 2.0 * iou_variance_m2(motion.velocity_var_m2_s2, motion.correlation_s, span)
+    result: BoolArray = (count >= 3) & (moved_sq > 0.25 * typical_sq)
+    return result
 
 
 def _rows(tracks: Tracks, labels: IntArray) -> IntArray:
@@ -167,7 +234,8 @@ def update(
     association marginals and r_B (m,) (Eq. lmb_birth).
     """
     area = region.area_m2
-    b = params.birth_weight / area  # intensity of measurements from targets not yet seen
+    area_a = params.tracks.area.area_m2 if params.tracks.area is not None else area
+    b = params.birth_weight / area_a  # intensity of measurements from targets not yet seen
     kappa = max(params.clutter_per_scan / area, _TINY) + b  # clutter and newborn intensity
     n_rows, m = tracks.size, z.shape[0]
     moments = params.push is not None and params.push.mode is PushMode.MOMENT
@@ -233,8 +301,7 @@ def step(
         posterior = Mixture.concat([posterior, replace(born, labels=labels)])
     pruned, _ = prune(posterior, params.prune_weight)
     reduced = merge(pruned, params.merge_distance_sq, params.max_components).mixture
-    birth_per_m2 = None if region is None else params.birth_weight / region.area_m2
-    return _maintain(tracks, reduced, detected_p, t_s, params, birth_per_m2)
+    return _maintain(tracks, reduced, detected_p, t_s, params)
 
 
 def _maintain(
@@ -243,7 +310,6 @@ def _maintain(
     detected_p: FloatArray,
     t_s: float,
     params: SatParams,
-    birth_per_m2: float | None,
 ) -> tuple[Mixture, Tracks, int]:
     """The track rows of the Bernoullis after this step: existence, moments, detections, GP
     windows and confirmation; a Bernoulli ends when its components are pruned away, or when it
@@ -261,8 +327,13 @@ def _maintain(
     hit = detected_p > 0.5
     hits = tracks.hits + hit
     score = np.log(np.maximum(capped, _TINY)) - np.log(np.maximum(1.0 - capped, _TINY))
-    confirmed = tracks.confirmed | ((hits >= tp.confirm_length) & (capped >= tp.confirm_existence))
-    alive = (r > 0.0) & ~(confirmed & (capped < tp.drop_existence))
+    # Confirmed: confirm_length detections and r >= confirm_existence; it stays confirmed while
+    # r >= extract_weight (a target whose r stays high out of view keeps its track).
+    proven = hits >= tp.confirm_length
+    confirmed = (tracks.confirmed & (capped >= params.extract_weight)) | (
+        proven & (capped >= tp.confirm_existence)
+    )
+    alive = (r > 0.0) & ~(proven & (capped < tp.drop_existence))
     summary = _moment_match(Mixture(weights, mix.means, mix.covs, mix.labels), row, tracks.size)
     seen = np.flatnonzero(hit & alive)
     win_t, win_xy, win_count = tracks.win_t_s, tracks.win_xy, tracks.win_count
@@ -290,7 +361,6 @@ def _maintain(
     keep = alive[row]
     mix = Mixture(weights[keep], mix.means[keep], mix.covs[keep], mix.labels[keep])
     survivors = updated.take(alive)
-    was_confirmed = np.concatenate([tracks.confirmed[alive], np.zeros(born.size, dtype=bool)])
     survivors = replace(survivors, log=survivors.log.append(
         survivors.ids, t_s, survivors.means, survivors.covs))
     if born.size:
@@ -299,28 +369,7 @@ def _maintain(
                           existence=born.weights)
         mix = Mixture.concat([mix, replace(born, labels=new.ids)])
         survivors = _concat(survivors, new)
-    if params.tracks.motion.speed_m_s > 0.0 and birth_per_m2 is not None:
-        survivors, mix = _refound(survivors, mix, was_confirmed, t_s, params.tracks, birth_per_m2)
+    survivors = replace(survivors, alone=np.ones(survivors.size, dtype=bool))
     extracted = int(np.count_nonzero(survivors.existence > params.extract_weight))
     return mix, survivors, extracted
 
-
-def _refound(
-    tracks: Tracks,
-    mix: Mixture,
-    was_confirmed: BoolArray,
-    t_s: float,
-    params: TrackParams,
-    birth_per_m2: float,
-) -> tuple[Tracks, Mixture]:
-    """A Bernoulli confirmed this step that is a mover's confirmed track found again (tracks'
-    Eq. refound, with the old track's honest covariance) takes the old track's label; the old
-    Bernoulli, whose components stayed where the target was last seen, ends."""
-    before = mix.labels
-    tracks, labels = _absorb(tracks, before.copy(), was_confirmed, t_s, params, birth_per_m2)
-    changed = labels != before
-    if not changed.any():
-        return tracks, mix
-    stale = np.isin(before, labels[changed]) & ~changed
-    keep = ~stale
-    return tracks, Mixture(mix.weights[keep], mix.means[keep], mix.covs[keep], labels[keep])
