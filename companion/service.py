@@ -62,6 +62,8 @@ from companion.vehicle.modes import mission_mode
 from companion.vehicle.plausibility import PositionGate
 from companion.vehicle.signing import SigningRelay, load_signing_key
 from companion.vehicle.view import VehicleView
+from companion.view.live import LiveView
+from companion.view.model import Status, Vehicle, yaw_deg
 from companion.vision.camera import CameraModel
 
 __all__ = ["RunResult", "Service", "camera_model"]
@@ -131,6 +133,7 @@ class Service:
         self._frames: FrameRecorder | None = None
         self._checkpoint_due_s = -math.inf
         self._checkpoint_found: tuple[Path, dict[str, Any]] | None = None
+        self.live: LiveView | None = None  # the operator's page, while it is served
 
     # -- configuration -----------------------------------------------------------------------
 
@@ -174,6 +177,7 @@ class Service:
         gc.collect()
         gc.freeze()
         try:
+            await self._start_view()
             await self._fly(stop, folder, tlog)
             tracks = self._write_reports(folder)
             self._event("end", state=self.mission.state.value, confirmed=len(tracks),
@@ -183,6 +187,8 @@ class Service:
             raise
         finally:
             gc.unfreeze()
+            if self.live is not None:
+                await self.live.close()
             self.notifier.stopping()
             self.notifier.close()
             tlog.close()
@@ -241,6 +247,42 @@ class Service:
             self.counters["frame_errors"] = grabber.errors
             self.counters["frames_corrupt"] = getattr(source, "corrupt_frames", 0)
             self.counters.update({f"rejected_{k}": v for k, v in self.view.rejected.items()})
+
+    async def _start_view(self) -> None:
+        """Serve the operator's page (view.enabled); an address that cannot be taken is
+        logged and the flight goes on without it."""
+        v = self.config.view
+        if not v.enabled:
+            return
+        live = LiveView(self.config, self.pipeline.frame, self.pipeline.params.tracks, self._log)
+        try:
+            await live.start()
+        except CompanionError as exc:
+            self._log(f"view: not served: {exc}")
+            self._event("view_failed", error=str(exc))
+            return
+        self.live = live
+        self._log(f"view: serving the operator's page at {live.server.url}")
+        self._event("view", url=live.server.url, token=v.token_file is not None)
+
+    def _view_status(self, record: StepRecord) -> tuple[Vehicle | None, Status]:
+        """The vehicle (newest pose) and the service's status for the page."""
+        view, frame = self.view, self.pipeline.frame
+        sample = None if view.latest_boot_s is None else view.poses.at(view.latest_boot_s)
+        vehicle = None
+        if sample is not None:
+            xy = vehicle_xy(frame, sample.lat_deg, sample.lon_deg)
+            vehicle = Vehicle((float(xy[0]), float(xy[1])), yaw_deg(sample.q_wxyz),
+                              sample.alt_rel_m)
+        origin = view.local_origin()
+        home = None
+        if origin is not None:
+            hx, hy = vehicle_xy(frame, origin.lat_deg, origin.lon_deg)
+            home = (float(hx), float(hy))
+        inputs = self._inputs()
+        return vehicle, Status(self.mission.state.value, inputs.connected,
+                               record.blind not in ("no frame", "blank frame", "frozen frame"),
+                               dict(self.counters), home)
 
     def _resume(self, out: Path) -> None:
         """Find the checkpoint of a run that stopped a short while ago (a restart?)."""
@@ -333,8 +375,13 @@ class Service:
             self._last_step_wall_s = time.monotonic()
             self.counters["steps"] += 1
             self.counters["blind_steps"] += record.blind is not None
-            folder.write_step(record.to_json(self.pipeline.frame))
+            step_json = record.to_json(self.pipeline.frame)
+            folder.write_step(step_json)
             state = self.pipeline.state
+            if self.live is not None:
+                vehicle, status = self._view_status(record)
+                status.counters["frames_dropped"] = grabber.dropped
+                await self.live.after_step(step_json, state, vehicle, status)
             if state is not None and state.t_s >= self._checkpoint_due_s:  # off the event loop
                 self._checkpoint_due_s = state.t_s + CHECKPOINT_EVERY_S
                 await loop.run_in_executor(None, save_checkpoint, folder.path,
