@@ -101,7 +101,9 @@ class Trails:
         the tracks' positions (tracks that ended leave their history)."""
         path = self.path
         if vehicle_xy is not None:
-            path = (*path, (_r(vehicle_xy[0]), _r(vehicle_xy[1])))[-PATH_POINTS:]
+            here = (_r(vehicle_xy[0]), _r(vehicle_xy[1]))
+            if not path or path[-1] != here:
+                path = (*path, here)[-PATH_POINTS:]
         history: dict[int, tuple[tuple[float, float], ...]] = {}
         if state is not None:
             tracks = state.tracks
