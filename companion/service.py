@@ -189,6 +189,7 @@ class Service:
             gc.unfreeze()
             if self.live is not None:
                 await self.live.close()
+                self.counters.update(self.live.counters())
             self.notifier.stopping()
             self.notifier.close()
             tlog.close()

@@ -8,6 +8,7 @@ thread so that the event loop (and the setpoint stream it runs) never waits for 
 from __future__ import annotations
 
 import asyncio
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -40,6 +41,8 @@ class LiveView:
         self.trails = Trails()
         self.seq = 0
         self._building = False
+        self.build_cpu_s = 0.0  # CPU time making messages (worker threads)
+        self.trails_cpu_s = 0.0  # CPU time keeping the trails (the event loop)
         self._next: tuple[int, dict[str, Any], SatState | None, Vehicle | None, Status,
                           Trails] | None = None
 
@@ -53,12 +56,26 @@ class LiveView:
 
     def _message(self, seq: int, record: dict[str, Any], state: SatState | None,
                  vehicle: Vehicle | None, status: Status, trails: Trails) -> str:
-        return encode(step_message(seq, self.frame, state, record, trails, self.params,
-                                   vehicle, status))
+        started = time.thread_time()
+        try:
+            return encode(step_message(seq, self.frame, state, record, trails, self.params,
+                                       vehicle, status))
+        finally:
+            self.build_cpu_s += time.thread_time() - started
+
+    def counters(self) -> dict[str, int]:
+        """What the view did in the flight: pages, messages, drops and its CPU time (ms)."""
+        s = self.server.stats
+        cpu_s = self.build_cpu_s + self.trails_cpu_s + s.send_cpu_s
+        return {"view_pages": s.connected, "view_messages_sent": s.messages_sent,
+                "view_pages_dropped_slow": s.dropped_slow,
+                "view_refused_token": s.refused_token, "view_refused_full": s.refused_full,
+                "view_cpu_ms": round(1e3 * cpu_s)}
 
     async def after_step(self, record: dict[str, Any], state: SatState | None,
                          vehicle: Vehicle | None, status: Status) -> None:
         """Add a step (its record as in steps.jsonl) to the trails; pages get its message."""
+        started = time.thread_time()
         self.seq += 1
         xy = None if vehicle is None else vehicle.xy_m
         meas = record.get("measurements_utm") or []
@@ -66,6 +83,7 @@ class LiveView:
                       else np.zeros((0, 2)))
         t_s = float(record.get("t_s", 0.0))
         self.trails = self.trails.after(t_s, xy, detections, record.get("blind"), state)
+        self.trails_cpu_s += time.thread_time() - started
         if not self.server.has_clients:
             return  # nobody to show it to
         self._next = (self.seq, record, state, vehicle, status, self.trails)

@@ -23,6 +23,7 @@ import json
 import os
 import socket
 import stat
+import time
 import zlib
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
@@ -101,6 +102,7 @@ class ServerStats:
     dropped_slow: int = 0
     messages_sent: int = 0
     messages_skipped: int = 0  # replaced by a newer one before a page took them
+    send_cpu_s: float = 0.0  # this thread's CPU time in sending (waits for a socket included)
 
 
 @dataclass(eq=False)
@@ -306,6 +308,7 @@ class ViewServer:
             if transport is not None and transport.get_write_buffer_size() > MAX_BUFFERED_BYTES:
                 self._drop(client, slow=True)
                 return
+            started = time.thread_time()
             try:
                 async with asyncio.timeout(SEND_TIMEOUT_S):
                     await client.ws.send_str(text)
@@ -315,6 +318,8 @@ class ViewServer:
             except (ConnectionError, RuntimeError):
                 self._drop(client)
                 return
+            finally:
+                self.stats.send_cpu_s += time.thread_time() - started
             self.stats.messages_sent += 1
 
     def _forget(self, client: _Client) -> None:

@@ -86,7 +86,7 @@
         const v = cells.charCodeAt(row * heat.nx + col) / 255;
         const o = ((heat.ny - 1 - row) * heat.nx + col) * 4;  // rows come from the south
         img.data[o] = 255; img.data[o + 1] = Math.round(220 * (1 - v)); img.data[o + 2] = 0;
-        img.data[o + 3] = Math.round(200 * Math.sqrt(v));
+        img.data[o + 3] = v < 0.02 ? 0 : Math.round(20 + 180 * v);
       }
     }
     ctx.putImageData(img, 0, 0);
@@ -326,5 +326,6 @@
       setInterval(watchStale, 250);
     }
   }
+  window.addEventListener("resize", () => map.invalidateSize());
   start();
 })();
