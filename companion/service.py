@@ -28,6 +28,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -179,6 +180,7 @@ class Service:
         try:
             await self._start_view()
             await self._fly(stop, folder, tlog)
+            await self._close_view()  # the pages' last picture is the final estimate
             tracks = self._write_reports(folder)
             self._event("end", state=self.mission.state.value, confirmed=len(tracks),
                         **self.counters)
@@ -187,9 +189,7 @@ class Service:
             raise
         finally:
             gc.unfreeze()
-            if self.live is not None:
-                await self.live.close()
-                self.counters.update(self.live.counters())
+            await self._close_view()
             self.notifier.stopping()
             self.notifier.close()
             tlog.close()
@@ -266,24 +266,32 @@ class Service:
         self._log(f"view: serving the operator's page at {live.server.url}")
         self._event("view", url=live.server.url, token=v.token_file is not None)
 
-    def _view_status(self, record: StepRecord) -> tuple[Vehicle | None, Status]:
-        """The vehicle (newest pose) and the service's status for the page."""
+    async def _close_view(self) -> None:
+        """Stop serving the page (once); its counters join the run's."""
+        live, self.live = self.live, None
+        if live is not None:
+            await live.close()
+            self.counters.update(live.counters())
+
+    def _view_vehicle(self) -> Vehicle | None:
+        """The vehicle for the page: its newest pose on the grid, heading and height."""
         view, frame = self.view, self.pipeline.frame
         sample = None if view.latest_boot_s is None else view.poses.at(view.latest_boot_s)
-        vehicle = None
-        if sample is not None:
-            xy = vehicle_xy(frame, sample.lat_deg, sample.lon_deg)
-            vehicle = Vehicle((float(xy[0]), float(xy[1])), yaw_deg(sample.q_wxyz),
-                              sample.alt_rel_m)
-        origin = view.local_origin()
+        if sample is None:
+            return None
+        xy = vehicle_xy(frame, sample.lat_deg, sample.lon_deg)
+        return Vehicle((float(xy[0]), float(xy[1])), yaw_deg(sample.q_wxyz), sample.alt_rel_m)
+
+    def _view_status(self, record: StepRecord, frames_dropped: int) -> Status:
+        """The service's status for the page: mission, link, camera, counters, home."""
+        origin = self.view.local_origin()
         home = None
         if origin is not None:
-            hx, hy = vehicle_xy(frame, origin.lat_deg, origin.lon_deg)
+            hx, hy = vehicle_xy(self.pipeline.frame, origin.lat_deg, origin.lon_deg)
             home = (float(hx), float(hy))
-        inputs = self._inputs()
-        return vehicle, Status(self.mission.state.value, inputs.connected,
-                               record.blind not in ("no frame", "blank frame", "frozen frame"),
-                               dict(self.counters), home)
+        return Status(self.mission.state.value, self._inputs().connected,
+                      record.blind not in ("no frame", "blank frame", "frozen frame"),
+                      {**self.counters, "frames_dropped": frames_dropped}, home)
 
     def _resume(self, out: Path) -> None:
         """Find the checkpoint of a run that stopped a short while ago (a restart?)."""
@@ -380,9 +388,8 @@ class Service:
             folder.write_step(step_json)
             state = self.pipeline.state
             if self.live is not None:
-                vehicle, status = self._view_status(record)
-                status.counters["frames_dropped"] = grabber.dropped
-                await self.live.after_step(step_json, state, vehicle, status)
+                await self.live.after_step(step_json, state, self._view_vehicle(), partial(
+                    self._view_status, record, grabber.dropped))
             if state is not None and state.t_s >= self._checkpoint_due_s:  # off the event loop
                 self._checkpoint_due_s = state.t_s + CHECKPOINT_EVERY_S
                 await loop.run_in_executor(None, save_checkpoint, folder.path,
