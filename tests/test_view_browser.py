@@ -138,12 +138,15 @@ def test_the_vehicle_moves_on_the_page(mission: tuple[DemoResult, Watched]) -> N
 @contextlib.contextmanager
 def serving(run_dir: Path) -> Iterator[str]:
     """`companion view RUN --port 0` as a user starts it; the page's address."""
-    proc = subprocess.Popen([sys.executable, "-m", "companion", "view", str(run_dir), "--port",
-                             "0"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    err = run_dir.with_name(run_dir.name + "-view-stderr.txt")
+    with err.open("w") as err_file:
+        proc = subprocess.Popen([sys.executable, "-m", "companion", "view", str(run_dir),
+                                 "--port", "0"], stdout=subprocess.PIPE, stderr=err_file,
+                                text=True)
     try:
-        assert proc.stdout is not None and proc.stderr is not None
+        assert proc.stdout is not None
         line = proc.stdout.readline()
-        assert line, proc.stderr.read()
+        assert line, err.read_text()
         yield str(json.loads(line)["url"])
     finally:
         proc.terminate()
@@ -216,3 +219,31 @@ def test_a_run_folder_of_an_earlier_version_opens(mission: tuple[DemoResult, Wat
         assert _ids(page) == sorted(t.id for t in result.run.tracks)
         _set_slider(page, len(steps) // 2)
         assert page.locator("#vehicle-pos").get_attribute("data-x") is not None
+
+
+def test_replay_with_view_replays_then_serves_the_slider(mission: tuple[DemoResult, Watched],
+                                                        tmp_path: Path) -> None:
+    result, _ = mission
+    run_dir = result.run.out_dir
+    err = tmp_path / "stderr.txt"
+    with err.open("w") as err_file:
+        proc = subprocess.Popen([sys.executable, "-m", "companion", "replay", str(run_dir),
+                                 "--recorded-detections", "--out", str(tmp_path / "replay"),
+                                 "--view", "--port", "0"],
+                                stdout=subprocess.PIPE, stderr=err_file, text=True)
+    try:
+        assert proc.stdout is not None
+        lines = [proc.stdout.readline() for _ in range(2)]
+        assert lines[0].startswith("replayed "), [*lines, err.read_text()]
+        url = json.loads(lines[1])["url"]
+        with chromium() as context:
+            page = context.new_page()
+            page.goto(url)
+            steps = len(read_steps(run_dir))
+            page.wait_for_selector(f"body[data-seq='{steps}']", timeout=60_000)
+            assert page.locator("#replay").is_visible()
+            assert _ids(page) == sorted(t.id for t in result.run.tracks)
+    finally:
+        proc.terminate()
+        proc.wait(10)
+    assert (tmp_path / "replay" / "tracks.csv").is_file()

@@ -14,6 +14,7 @@ from pathlib import Path
 import aiohttp
 import pytest
 
+import companion.view.server as server_module
 from companion.errors import ConfigError
 from companion.view.server import ViewServer, load_token
 
@@ -150,6 +151,26 @@ def test_a_page_that_stops_reading_is_dropped() -> None:
             assert server.stats.clients == 0
         finally:
             sock.close()
+            await server.close()
+
+    run(body)
+
+
+def test_a_page_that_answers_no_ping_is_dropped(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(server_module, "HEARTBEAT_S", 0.5)
+
+    async def body() -> None:
+        server = await started()
+        try:
+            async with aiohttp.ClientSession() as s:
+                ws = await s.ws_connect(server.url + "api/stream", autoping=False)
+                async with asyncio.timeout(10):  # small messages, read by nobody, no pong
+                    while server.stats.clients:
+                        server.publish("{}")
+                        await asyncio.sleep(0.05)
+                assert server.stats.dropped_slow == 1
+                await ws.close()
+        finally:
             await server.close()
 
     run(body)

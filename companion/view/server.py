@@ -11,7 +11,7 @@ logged (the access log is off, since the query carries it). No CORS header is se
 WebSocket from a page of another origin is refused. At most `max_clients` pages stream at once.
 Each page gets only the newest message: a message not yet sent is replaced by the next, never
 queued; a page whose socket takes longer than SEND_TIMEOUT_S to accept one, or holds more than
-MAX_BUFFERED_BYTES unsent, is dropped.
+MAX_BUFFERED_BYTES unsent, or that answers no ping within HEARTBEAT_S / 2, is dropped.
 """
 
 from __future__ import annotations
@@ -41,6 +41,7 @@ __all__ = ["SEND_TIMEOUT_S", "ServerStats", "ViewServer", "load_token"]
 SEND_TIMEOUT_S = 2.0  # a page that takes longer to accept one message is dropped
 MAX_BUFFERED_BYTES = 1_000_000  # unsent bytes a page may hold before it is dropped
 SOCKET_SEND_BUFFER = 256 * 1024  # the kernel's send buffer for each page
+HEARTBEAT_S = 10.0  # a page that answers no ping within half of this is dropped too
 MAX_INCOMING_BYTES = 4096  # what a page may send in one WebSocket message (nothing is read)
 MAX_TOKEN_BYTES = 4096
 TOKEN_KEY = "view.token_file"
@@ -99,7 +100,7 @@ class ServerStats:
     refused_token: int = 0
     refused_full: int = 0
     refused_origin: int = 0
-    dropped_slow: int = 0
+    dropped_slow: int = 0  # pages that stopped reading (or answering pings), cut off
     messages_sent: int = 0
     messages_skipped: int = 0  # replaced by a newer one before a page took them
     send_cpu_s: float = 0.0  # this thread's CPU time in sending (waits for a socket included)
@@ -270,7 +271,7 @@ class ViewServer:
             return web.Response(status=503, text=f"{self.max_clients} pages are streaming "
                                                  "already (view.max_clients)\n")
         ws = web.WebSocketResponse(max_msg_size=MAX_INCOMING_BYTES, compress=False,
-                                   heartbeat=10.0)
+                                   heartbeat=HEARTBEAT_S)
         await ws.prepare(request)
         transport = request.transport
         sock = None if transport is None else transport.get_extra_info("socket")
@@ -292,6 +293,8 @@ class ViewServer:
                 if msg.type is WSMsgType.ERROR:
                     break
         finally:
+            if isinstance(ws.exception(), TimeoutError):  # it answered no ping: not reading
+                self._drop(client, slow=True)
             self._forget(client)
             sender.cancel()
         return ws
