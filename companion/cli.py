@@ -107,11 +107,20 @@ def _check_signing_key(config: ServiceConfig) -> None:
         load_signing_key(Path(config.vehicle.signing_key_file))
 
 
+def _check_view_token(config: ServiceConfig) -> None:
+    """A view token file that is missing, too short or readable by others stops the start."""
+    if config.view.enabled and config.view.token_file is not None:
+        from companion.view.server import load_token
+
+        load_token(Path(config.view.token_file))
+
+
 def _check_config(args: argparse.Namespace) -> int:
     from companion.config import load_config
 
     config = load_config(args.config)
     _check_signing_key(config)
+    _check_view_token(config)
     s = config.search
     print(f"{args.config}: ok (vehicle {config.vehicle.connection}, camera "
           f"{config.camera.source}, search area of {s.area_latlon.shape[0]} vertices in "
@@ -129,6 +138,7 @@ def _run(args: argparse.Namespace) -> int:
 
     config = load_config(args.config)
     _check_signing_key(config)
+    _check_view_token(config)
     route_mavsdk_log(lambda line: print(line, file=sys.stderr, flush=True))
 
     async def fly() -> int:

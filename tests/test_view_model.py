@@ -142,3 +142,17 @@ def test_view_of_a_folder_that_is_no_run_is_one_clear_line(
     assert "holds no step" in capsys.readouterr().err
     assert main(["view", str(tmp_path), "--bind", "0.0.0.0"]) == 2
     assert "--token-file" in capsys.readouterr().err
+
+
+def test_check_config_refuses_a_token_file_others_can_read(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    text = (ROOT / "sitl" / "service.toml").read_text().replace(
+        "[view]", '[view]\nbind = "0.0.0.0"\ntoken_file = "view.token"')
+    (tmp_path / "service.toml").write_text(text.replace('dir = "../out/sitl"', 'dir = "out"'))
+    token = tmp_path / "view.token"
+    token.write_text("a-token-long-enough-1234\n")
+    token.chmod(0o644)
+    assert main(["check-config", str(tmp_path / "service.toml")]) == 2
+    assert "view.token_file" in capsys.readouterr().err
+    token.chmod(0o600)
+    assert main(["check-config", str(tmp_path / "service.toml")]) == 0
