@@ -49,7 +49,7 @@ bench: $(STAMP)
 
 reliability: $(STAMP)
 	$(BIN)/pytest -q tests/test_faults_sitl.py tests/test_service_sitl.py tests/test_systemd.py \
-		tests/test_soak.py
+		tests/test_soak.py tests/test_view_load_sitl.py
 	$(BIN)/python benchmarks/reliability_report.py
 
 # The runtime dependencies of pyproject.toml pinned with their hashes, for Python 3.11 on linux

@@ -230,7 +230,7 @@ def _serve_view(run_dir: Path, args: argparse.Namespace, config: ServiceConfig |
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, stop.set)
         server = ViewServer(view.scene, bind=args.bind, port=args.port, token=token,
-                            steps=view.steps)
+                            steps=view.steps, address_keys=("--bind", "--port"))
         await server.start()
         print(f"view of {run_dir.name} ({len(view.steps)} steps) at {server.url}"
               f"{'' if token is None else ' (add ?token=... from the token file)'}; "

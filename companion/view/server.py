@@ -127,13 +127,15 @@ class ViewServer:
     def __init__(self, scene: dict[str, Any], *, bind: str = "127.0.0.1", port: int = 0,
                  token: str | None = None, max_clients: int = 8,
                  steps: Sequence[bytes] | None = None,
-                 log: Callable[[str], None] = lambda _: None) -> None:
+                 log: Callable[[str], None] = lambda _: None,
+                 address_keys: tuple[str, str] = ("view.bind", "view.port")) -> None:
         self.scene = scene
         self.bind, self.port = bind, port
         self._token = token
         self.max_clients = max_clients
         self._steps = steps  # a replay's messages, each zlib-compressed JSON
         self._log = log
+        self._address_keys = address_keys  # what a bad address is reported under
         self.stats = ServerStats()
         self._clients: set[_Client] = set()
         self._senders: set[asyncio.Task[None]] = set()
@@ -150,7 +152,7 @@ class ViewServer:
 
     async def start(self) -> None:
         """Listen; with port 0 on a free port, then self.port is the one taken. An address
-        that cannot be taken raises ConfigError naming view.bind or view.port."""
+        that cannot be taken raises ConfigError naming view.bind or view.port (address_keys)."""
         app = web.Application(middlewares=[self._headers], client_max_size=1024)
         app.router.add_get("/", self._index)
         app.router.add_get("/api/scene", self._scene)
@@ -164,7 +166,8 @@ class ViewServer:
             await site.start()
         except OSError as exc:
             await runner.cleanup()
-            key = "view.bind" if exc.errno in (99, -2, -3, -5) else "view.port"
+            bind_key, port_key = self._address_keys
+            key = bind_key if exc.errno in (99, -2, -3, -5) else port_key
             raise ConfigError(key, f"cannot listen on {self.bind}:{self.port}: "
                                    f"{exc.strerror or exc}") from None
         self._runner = runner
