@@ -3,8 +3,8 @@
 The view may cost the service under 5 % of a core (its CPU time: making the messages in worker
 threads, keeping the trails and sending on the event loop) and add no setpoint gap over 1.5
 periods (the soak's measure, as sent). A page that stops reading is dropped, not buffered for.
-The browsers run at the lowest CPU priority: an operator's browser runs on a phone or a laptop,
-not on the companion computer, whose cores the test shares with them.
+The browsers run on one core at the lowest CPU priority: an operator's browser runs on a phone
+or a laptop, not on the companion computer, whose two cores the test shares with them.
 """
 
 from __future__ import annotations

@@ -9,7 +9,8 @@
   const $ = (id) => document.getElementById(id);
   const ll = (x, y) => L.latLng(y, x);
   const pts = (xy) => xy.map((p) => ll(p[0], p[1]));
-  const state = { scene: null, message: null, lastAt: 0, ws: null, everConnected: false };
+  const state = { scene: null, message: null, unseen: null, lastAt: 0, ws: null,
+                  everConnected: false };
   window.companionView = state;
 
   const map = L.map("map", {
@@ -245,7 +246,11 @@
     ws.onmessage = (event) => {
       const m = JSON.parse(event.data);
       state.lastAt = performance.now();
-      if (m.type === "scene") drawScene(m); else if (m.type === "step") drawStep(m);
+      if (m.type === "scene") drawScene(m);
+      else if (m.type === "step") {
+        if (document.hidden) state.unseen = m;  // a background tab draws when shown again
+        else drawStep(m);
+      }
     };
     ws.onclose = () => { state.ws = null; setTimeout(connect, 2000); };
   }
@@ -327,5 +332,8 @@
     }
   }
   window.addEventListener("resize", () => map.invalidateSize());
+  document.addEventListener("visibilitychange", () => {
+    if (!document.hidden && state.unseen) { drawStep(state.unseen); state.unseen = null; }
+  });
   start();
 })();
