@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import os
 import tempfile
 import threading
 from collections.abc import Callable, Iterator
@@ -21,16 +20,9 @@ DOCS = Path(__file__).resolve().parents[1] / "docs"
 
 
 @contextlib.contextmanager
-def chromium(width: int = 1280, height: int = 800, *,
-             elsewhere: bool = False) -> Iterator[BrowserContext]:
-    """A headless Chromium with a new, empty profile, closed at the end. elsewhere: on one
-    core at the lowest CPU priority, since an operator's browser runs on a phone or a laptop,
-    not on the companion computer (the calling thread's priority and cores, which the
-    processes it starts inherit)."""
+def chromium(width: int = 1280, height: int = 800) -> Iterator[BrowserContext]:
+    """A headless Chromium with a new, empty profile, closed at the end."""
     assert CHROMIUM.is_file(), f"{CHROMIUM} is missing: apt-get install chromium (make test does)"
-    if elsewhere:
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
-        os.sched_setaffinity(0, {max(os.sched_getaffinity(0))})  # this thread: pid 0
     with sync_playwright() as pw, tempfile.TemporaryDirectory(prefix="chromium-") as profile:
         context = pw.chromium.launch_persistent_context(
             profile, executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_ARGS,

@@ -194,6 +194,7 @@ def test_the_replay_view_opens_at_the_end_and_its_slider_shows_a_chosen_time(
         paused_at = page.locator("#slider").input_value()
         page.wait_for_timeout(500)  # nothing may move while paused
         assert page.locator("#slider").input_value() == paused_at
+        _set_slider(page, len(steps) - 1)
         page.set_viewport_size({"width": 390, "height": 844})
         page.wait_for_function("() => document.getElementById('side').getBoundingClientRect()"
                                ".top > document.getElementById('map').getBoundingClientRect().top")

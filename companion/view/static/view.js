@@ -10,7 +10,7 @@
   const ll = (x, y) => L.latLng(y, x);
   const pts = (xy) => xy.map((p) => ll(p[0], p[1]));
   const state = { scene: null, message: null, unseen: null, lastAt: 0, ws: null,
-                  everConnected: false };
+                  everConnected: false, bounds: null };
   window.companionView = state;
 
   const map = L.map("map", {
@@ -71,7 +71,8 @@
     if (!fitted) {
       const bounds = L.latLngBounds([ll(0, 0), ll(w, h)]);
       if (scene.geofence) scene.geofence.forEach((p) => bounds.extend(ll(p[0], p[1])));
-      map.fitBounds(bounds.pad(0.05));
+      state.bounds = bounds.pad(0.05);
+      map.fitBounds(state.bounds);
       fitted = true;
     }
   }
@@ -331,7 +332,12 @@
       setInterval(watchStale, 250);
     }
   }
-  window.addEventListener("resize", () => map.invalidateSize());
+  let userMoved = false;  // once the operator pans the map, a resize keeps their view
+  map.on("dragstart", () => { userMoved = true; });
+  window.addEventListener("resize", () => {
+    map.invalidateSize();
+    if (!userMoved && state.bounds) map.fitBounds(state.bounds);
+  });
   document.addEventListener("visibilitychange", () => {
     if (!document.hidden && state.unseen) { drawStep(state.unseen); state.unseen = null; }
   });
