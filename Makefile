@@ -1,6 +1,6 @@
 # Entry points (see README.md): `make run` (the main job: the service flies the SITL field
 # experiment), `make test` (the test suite), `make check` (lint, types and the tests that fly
-# no SITL mission: the fast tier), `make study` (the paper's simulation study),
+# no SITL mission and start no browser: the fast tier), `make study` (the paper's simulation study),
 # `make reliability` (the fault, security and load tests, then docs/reliability.md),
 # `make lock` (regenerates requirements/onboard.lock, the hashed onboard install).
 # Each creates and fills the virtual environment .venv when it is missing or out of date.
@@ -32,6 +32,7 @@ study: $(STAMP)
 
 test: $(STAMP)
 	@command -v systemd-analyze >/dev/null || { apt-get update -qq && apt-get install -y -qq systemd >/dev/null; }
+	@test -x /usr/bin/chromium || { apt-get update -qq && apt-get install -y -qq chromium >/dev/null; }
 	$(BIN)/ruff check .
 	$(BIN)/mypy
 	$(BIN)/pytest -q
@@ -39,7 +40,7 @@ test: $(STAMP)
 check: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/mypy
-	$(BIN)/pytest -q -m "not sitl"
+	$(BIN)/pytest -q -m "not sitl and not browser"
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_filter.py
@@ -48,7 +49,7 @@ bench: $(STAMP)
 
 reliability: $(STAMP)
 	$(BIN)/pytest -q tests/test_faults_sitl.py tests/test_service_sitl.py tests/test_systemd.py \
-		tests/test_soak.py
+		tests/test_soak.py tests/test_view_load_sitl.py
 	$(BIN)/python benchmarks/reliability_report.py
 
 # The runtime dependencies of pyproject.toml pinned with their hashes, for Python 3.11 on linux

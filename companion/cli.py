@@ -23,6 +23,7 @@ from companion.scenario_lookup import resolve_scenario
 
 if TYPE_CHECKING:
     from companion.config import ServiceConfig
+    from companion.vision.camera import CameraModel
 
 
 def _simulate(args: argparse.Namespace) -> int:
@@ -106,11 +107,20 @@ def _check_signing_key(config: ServiceConfig) -> None:
         load_signing_key(Path(config.vehicle.signing_key_file))
 
 
+def _check_view_token(config: ServiceConfig) -> None:
+    """A view token file that is missing, too short or readable by others stops the start."""
+    if config.view.enabled and config.view.token_file is not None:
+        from companion.view.server import load_token
+
+        load_token(Path(config.view.token_file))
+
+
 def _check_config(args: argparse.Namespace) -> int:
     from companion.config import load_config
 
     config = load_config(args.config)
     _check_signing_key(config)
+    _check_view_token(config)
     s = config.search
     print(f"{args.config}: ok (vehicle {config.vehicle.connection}, camera "
           f"{config.camera.source}, search area of {s.area_latlon.shape[0]} vertices in "
@@ -128,6 +138,7 @@ def _run(args: argparse.Namespace) -> int:
 
     config = load_config(args.config)
     _check_signing_key(config)
+    _check_view_token(config)
     route_mavsdk_log(lambda line: print(line, file=sys.stderr, flush=True))
 
     async def fly() -> int:
@@ -181,7 +192,72 @@ def _replay(args: argparse.Namespace) -> int:
             shown = f"{err:8.2f}" if math.isfinite(err) else "  missed"
             print(f"{i:>6} {lat:11.6f} {lon:11.6f} {shown}")
         print(f"{result.score.missed} missed, {result.score.false_tracks} false tracks")
+    if args.view:
+        if source.is_dir():  # the same estimate again, over the run's recorded detections
+            return _serve_view(source, args, config)
+        from companion.pipeline import camera_model
+
+        assert config is not None  # a log replays only with a configuration
+        return _serve_view(result.out_dir, args, config, camera_model(config.camera))
     return EXIT_OK
+
+
+def _serve_view(run_dir: Path, args: argparse.Namespace, config: ServiceConfig | None,
+                camera: CameraModel | None = None) -> int:
+    """Serve the view of a run folder until Ctrl-C or SIGTERM."""
+    import asyncio
+    import ipaddress
+    import signal
+
+    from companion.view.recorded import recorded_view
+    from companion.view.server import ViewServer, load_token
+
+    try:
+        loopback = ipaddress.ip_address(args.bind).is_loopback
+    except ValueError:
+        loopback = args.bind == "localhost"
+    if not loopback and args.token_file is None:
+        raise ConfigError("--token-file", f"is required when --bind ({args.bind}) is not a "
+                          "loopback address")
+    token = None if args.token_file is None else load_token(args.token_file)
+    view = recorded_view(run_dir, config, camera)
+    for warning in view.warnings:
+        print(f"companion: warning: {warning}", file=sys.stderr)
+
+    async def serve() -> int:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+        server = ViewServer(view.scene, bind=args.bind, port=args.port, token=token,
+                            steps=view.steps, address_keys=("--bind", "--port"))
+        await server.start()
+        print(f"view of {run_dir.name} ({len(view.steps)} steps) at {server.url}"
+              f"{'' if token is None else ' (add ?token=... from the token file)'}; "
+              "Ctrl-C stops", file=sys.stderr, flush=True)
+        print(json.dumps({"url": server.url, "steps": len(view.steps)}), flush=True)
+        await stop.wait()
+        await server.close()
+        return EXIT_OK
+
+    return asyncio.run(serve())
+
+
+def _view(args: argparse.Namespace) -> int:
+    from companion.config import load_config
+
+    config = load_config(args.config) if args.config else None
+    return _serve_view(args.run_dir, args, config)
+
+
+def _add_view_arguments(parser: argparse.ArgumentParser, flag: str = "") -> None:
+    parser.add_argument("--bind", default="127.0.0.1",
+                        help=f"{flag}address the page listens on (default 127.0.0.1; any other "
+                             "needs --token-file)")
+    parser.add_argument("--port", type=int, default=8090,
+                        help=f"{flag}TCP port of the page (default 8090; 0: any free port)")
+    parser.add_argument("--token-file", type=Path, default=None,
+                        help=f"{flag}file holding the access token the page requires (mode 600)")
 
 
 def _positive_int(text: str) -> int:
@@ -274,7 +350,19 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument("--truth", type=Path, default=None,
                         help="true target positions (CSV with lat, lon columns, or GeoJSON "
                              "points): prints each target's error")
+    replay.add_argument("--view", action="store_true",
+                        help="then serve the replay's view: a time slider over its steps")
+    _add_view_arguments(replay, "with --view: ")
     replay.set_defaults(run=_replay)
+
+    view = sub.add_parser("view", help="serve the operator's page over a recorded run folder: "
+                                       "its map and targets at any time of the flight")
+    view.add_argument("run_dir", metavar="RUN", type=Path,
+                      help="a run folder written by `companion run` (or by `replay`)")
+    view.add_argument("--config", type=Path, default=None,
+                      help="re-estimate with this configuration instead of the run's own")
+    _add_view_arguments(view)
+    view.set_defaults(run=_view)
 
     check = sub.add_parser("check-config", help="validate a service configuration file and exit")
     check.add_argument("config", type=Path, help="the service's TOML configuration")

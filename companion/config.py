@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import ipaddress
 import json
 import sys
 from collections.abc import Mapping, Sequence
@@ -174,6 +175,17 @@ class OutputConfig:
 
 
 @dataclass(frozen=True, slots=True)
+class ViewConfig:
+    """The operator's read-only web page: where it listens and who may read it."""
+
+    enabled: bool
+    bind: str
+    port: int
+    token_file: str | None
+    max_clients: int
+
+
+@dataclass(frozen=True, slots=True)
 class ServiceConfig:
     """The whole configuration."""
 
@@ -187,6 +199,7 @@ class ServiceConfig:
     safety: SafetyConfig
     mission: MissionConfig
     output: OutputConfig
+    view: ViewConfig
     data: Mapping[str, Any] = field(default_factory=dict, compare=False, repr=False)  # as read
 
 
@@ -329,6 +342,17 @@ SECTIONS: dict[str, tuple[Key, ...]] = {
         Key("min_free_mb", Float(ge=0), 500.0,
             "free disk to leave: old runs are removed at start, frames stop below it"),
     ),
+    "view": (
+        Key("enabled", Bool(), True,
+            "serve the operator's read-only web page (map, estimate, targets) while flying"),
+        Key("bind", Text(), "127.0.0.1",
+            "address the page listens on; any other than a loopback one needs view.token_file"),
+        Key("port", Int(ge=0, le=65535), 8090, "TCP port of the page (0: any free port)"),
+        Key("token_file", Text(), Derived("none: no token (loopback only)"),
+            "file holding the access token the page and its stream require (mode 600)"),
+        Key("max_clients", Int(ge=1, le=64), 8,
+            "browsers connected at once; more are refused"),
+    ),
 }
 
 
@@ -399,6 +423,15 @@ def _cross_sections(t: dict[str, dict[str, Any]], errors: ErrorCollector) -> Non
         if not low_m <= search["altitude_m"] <= high_m:
             errors.add(ConfigError("search.altitude_m", f"must lie in the safety band [{low_m!r}, "
                                    f"{high_m!r}], got {search['altitude_m']!r}"))
+    view = t.get("view")
+    if view is not None and view["enabled"] and view["token_file"] is None:
+        try:
+            loopback = ipaddress.ip_address(view["bind"]).is_loopback
+        except ValueError:
+            loopback = view["bind"] == "localhost"
+        if not loopback:
+            errors.add(ConfigError("view.token_file", "is required when view.bind "
+                                   f"({view['bind']!r}) is not a loopback address"))
     if (search is not None and mission is not None and mission["end"] == "targets"
             and search["expected_targets"] is None):
         errors.add(ConfigError("search.expected_targets",
@@ -408,7 +441,7 @@ def _cross_sections(t: dict[str, dict[str, Any]], errors: ErrorCollector) -> Non
 def _relative_paths(t: dict[str, dict[str, Any]], base: Path | None) -> None:
     """The file names of the configuration made relative to its folder."""
     for section, leaf in (("camera", "calibration"), ("output", "dir"),
-                          ("vehicle", "signing_key_file")):
+                          ("vehicle", "signing_key_file"), ("view", "token_file")):
         if section in t and t[section][leaf] is not None:
             t[section][leaf] = _relative(base, t[section][leaf])
 
@@ -446,6 +479,7 @@ def parse_config(data: Mapping[str, Any], base: Path | None = None) -> ServiceCo
         safety=SafetyConfig(**tables["safety"]),
         mission=MissionConfig(**tables["mission"]),
         output=OutputConfig(**tables["output"]),
+        view=ViewConfig(**tables["view"]),
         data=copy.deepcopy(dict(data)),
     )
 
@@ -493,6 +527,7 @@ def schema_markdown() -> str:
         lines += ["", f"## `[{section}]`", "", *markdown_rows(section, keys)]
     lines += ["", "Cross-key rules: `safety.min_alt_m` < `safety.max_alt_m`; `search.altitude_m` "
               "inside that band; `mission.end = \"targets\"` needs `search.expected_targets`; "
+              "`view.bind` other than a loopback address needs `view.token_file`; "
               "polygons need at least 3 [lat, lon] vertices.", ""]
     return "\n".join(lines)
 

@@ -46,7 +46,8 @@ from companion.vehicle.view import VehicleView
 from companion.vision.camera import CameraModel
 from companion.vision.projection import GeoPose, PoseUncertainty
 
-__all__ = ["FrameTimes", "ReplayResult", "load_truth", "replay_log", "replay_run"]
+__all__ = ["FrameTimes", "ReplayResult", "load_truth", "recorded_observations", "replay_log",
+           "replay_run"]
 
 FloatArray = NDArray[np.float64]
 Progress = Callable[[int, int], None]
@@ -168,6 +169,28 @@ def _read_image(path: Path) -> NDArray[np.uint8]:
     return np.asarray(image, dtype=np.uint8)
 
 
+def recorded_observations(run_dir: Path, inputs: list[tuple[dict[str, Any], str | None]],
+                          redetect: bool, missing: list[int]) -> Iterator[Observation]:
+    """The observations of a run folder's recorded step inputs (each with its blind reason):
+    its kept frames where redetect is set and they exist, else its recorded detections; the
+    index of each kept frame found missing is appended to missing."""
+    for index, (step, blind) in enumerate(inputs):
+        if "pose" not in step:
+            yield Observation.nothing(step["boot_t_s"], blind or "blind")
+            continue
+        lat, lon, alt, height, *q = step["pose"]
+        pose = GeoPose(step["boot_t_s"], lat, lon, alt, height, tuple(q))
+        sigma = PoseUncertainty(*step["pose_sigma"]) if "pose_sigma" in step else None
+        image_path = run_dir / step["frame"] if redetect and "frame" in step else None
+        if image_path is not None and image_path.is_file():
+            yield Observation(pose.t_s, pose, _read_image(image_path), sigma=sigma)
+        else:
+            if image_path is not None:
+                missing.append(index)
+            pixels = np.array(step["pixels"], dtype=np.float64).reshape(-1, 2)
+            yield Observation(pose.t_s, pose, pixels=pixels, sigma=sigma)
+
+
 def replay_run(run_dir: Path, out_dir: Path, config: ServiceConfig | None = None,
                progress: Progress | None = None, truth_latlon: FloatArray | None = None,
                redetect: bool = True) -> ReplayResult:
@@ -180,34 +203,18 @@ def replay_run(run_dir: Path, out_dir: Path, config: ServiceConfig | None = None
     replay = _Replay(config, read_camera(run_dir), out_dir, truth_latlon)
     inputs = [(r["input"], r.get("blind")) for r in read_records(run_dir / "steps.jsonl",
                                                                   replay.warnings) if "input" in r]
-    missing = 0
-
-    def observations() -> Iterator[Observation]:
-        nonlocal missing
-        for step, blind in inputs:
-            if "pose" not in step:
-                yield Observation.nothing(step["boot_t_s"], blind or "blind")
-                continue
-            lat, lon, alt, height, *q = step["pose"]
-            pose = GeoPose(step["boot_t_s"], lat, lon, alt, height, tuple(q))
-            sigma = PoseUncertainty(*step["pose_sigma"]) if "pose_sigma" in step else None
-            image_path = run_dir / step["frame"] if redetect and "frame" in step else None
-            if image_path is not None and image_path.is_file():
-                yield Observation(pose.t_s, pose, _read_image(image_path), sigma=sigma)
-            else:
-                missing += image_path is not None
-                pixels = np.array(step["pixels"], dtype=np.float64).reshape(-1, 2)
-                yield Observation(pose.t_s, pose, pixels=pixels, sigma=sigma)
+    missing: list[int] = []
 
     def on_step(record: StepRecord) -> None:
         replay.add(record)
         if progress is not None:
             progress(replay.steps, len(inputs))
 
-    drive(replay.pipeline, observations(), replay.folder, on_step)
+    drive(replay.pipeline, recorded_observations(run_dir, inputs, redetect, missing),
+          replay.folder, on_step)
     if missing:
-        replay.warnings.append(f"{missing} kept frames are missing: their recorded detections "
-                               "were used")
+        replay.warnings.append(f"{len(missing)} kept frames are missing: their recorded "
+                               "detections were used")
     span_s = inputs[-1][0]["boot_t_s"] - inputs[0][0]["boot_t_s"] if len(inputs) > 1 else 0.0
     return replay.finish(len(inputs), float(span_s))
 

@@ -28,6 +28,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +63,8 @@ from companion.vehicle.modes import mission_mode
 from companion.vehicle.plausibility import PositionGate
 from companion.vehicle.signing import SigningRelay, load_signing_key
 from companion.vehicle.view import VehicleView
+from companion.view.live import LiveView
+from companion.view.model import Status, Vehicle, yaw_deg
 from companion.vision.camera import CameraModel
 
 __all__ = ["RunResult", "Service", "camera_model"]
@@ -131,6 +134,7 @@ class Service:
         self._frames: FrameRecorder | None = None
         self._checkpoint_due_s = -math.inf
         self._checkpoint_found: tuple[Path, dict[str, Any]] | None = None
+        self.live: LiveView | None = None  # the operator's page, while it is served
 
     # -- configuration -----------------------------------------------------------------------
 
@@ -174,7 +178,9 @@ class Service:
         gc.collect()
         gc.freeze()
         try:
+            await self._start_view()
             await self._fly(stop, folder, tlog)
+            await self._close_view()  # the pages' last picture is the final estimate
             tracks = self._write_reports(folder)
             self._event("end", state=self.mission.state.value, confirmed=len(tracks),
                         **self.counters)
@@ -183,6 +189,7 @@ class Service:
             raise
         finally:
             gc.unfreeze()
+            await self._close_view()
             self.notifier.stopping()
             self.notifier.close()
             tlog.close()
@@ -241,6 +248,50 @@ class Service:
             self.counters["frame_errors"] = grabber.errors
             self.counters["frames_corrupt"] = getattr(source, "corrupt_frames", 0)
             self.counters.update({f"rejected_{k}": v for k, v in self.view.rejected.items()})
+
+    async def _start_view(self) -> None:
+        """Serve the operator's page (view.enabled); an address that cannot be taken is
+        logged and the flight goes on without it."""
+        v = self.config.view
+        if not v.enabled:
+            return
+        live = LiveView(self.config, self.pipeline.frame, self.pipeline.params.tracks, self._log)
+        try:
+            await live.start()
+        except CompanionError as exc:
+            self._log(f"view: not served: {exc}")
+            self._event("view_failed", error=str(exc))
+            return
+        self.live = live
+        self._log(f"view: serving the operator's page at {live.server.url}")
+        self._event("view", url=live.server.url, token=v.token_file is not None)
+
+    async def _close_view(self) -> None:
+        """Stop serving the page (once); its counters join the run's."""
+        live, self.live = self.live, None
+        if live is not None:
+            await live.close()
+            self.counters.update(live.counters())
+
+    def _view_vehicle(self) -> Vehicle | None:
+        """The vehicle for the page: its newest pose on the grid, heading and height."""
+        view, frame = self.view, self.pipeline.frame
+        sample = None if view.latest_boot_s is None else view.poses.at(view.latest_boot_s)
+        if sample is None:
+            return None
+        xy = vehicle_xy(frame, sample.lat_deg, sample.lon_deg)
+        return Vehicle((float(xy[0]), float(xy[1])), yaw_deg(sample.q_wxyz), sample.alt_rel_m)
+
+    def _view_status(self, record: StepRecord, frames_dropped: int) -> Status:
+        """The service's status for the page: mission, link, camera, counters, home."""
+        origin = self.view.local_origin()
+        home = None
+        if origin is not None:
+            hx, hy = vehicle_xy(self.pipeline.frame, origin.lat_deg, origin.lon_deg)
+            home = (float(hx), float(hy))
+        return Status(self.mission.state.value, self._inputs().connected,
+                      record.blind not in ("no frame", "blank frame", "frozen frame"),
+                      {**self.counters, "frames_dropped": frames_dropped}, home)
 
     def _resume(self, out: Path) -> None:
         """Find the checkpoint of a run that stopped a short while ago (a restart?)."""
@@ -333,8 +384,12 @@ class Service:
             self._last_step_wall_s = time.monotonic()
             self.counters["steps"] += 1
             self.counters["blind_steps"] += record.blind is not None
-            folder.write_step(record.to_json(self.pipeline.frame))
+            step_json = record.to_json(self.pipeline.frame)
+            folder.write_step(step_json)
             state = self.pipeline.state
+            if self.live is not None:
+                await self.live.after_step(step_json, state, self._view_vehicle(), partial(
+                    self._view_status, record, grabber.dropped))
             if state is not None and state.t_s >= self._checkpoint_due_s:  # off the event loop
                 self._checkpoint_due_s = state.t_s + CHECKPOINT_EVERY_S
                 await loop.run_in_executor(None, save_checkpoint, folder.path,

@@ -49,8 +49,9 @@ def test_the_unit_file_verifies(tmp_path: Path) -> None:
     assert done.returncode == 0 and not done.stderr.strip(), done.stderr
 
 
-def test_the_unit_is_hardened_below_an_exposure_of_4(tmp_path: Path) -> None:
-    """`systemd-analyze security` scores the unit's sandboxing: 0 (locked down) to 10."""
+def test_the_unit_is_hardened_to_an_exposure_of_2_1_at_most(tmp_path: Path) -> None:
+    """`systemd-analyze security` scores the unit's sandboxing: 0 (locked down) to 10; the
+    operator's page (a TCP listener, no capability) must not raise it above 2.1."""
     analyze = shutil.which("systemd-analyze")
     assert analyze, "systemd-analyze is needed (Debian package systemd; make test installs it)"
     unit = tmp_path / "companion.service"
@@ -60,7 +61,7 @@ def test_the_unit_is_hardened_below_an_exposure_of_4(tmp_path: Path) -> None:
     found = re.search(r"Overall exposure level for companion\.service: (\d+\.\d+)", done.stdout)
     assert found, done.stdout[-500:] + done.stderr
     exposure = float(found.group(1))
-    assert exposure < 4.0
+    assert exposure <= 2.1
     record_figure("systemd-security", exposure=exposure)
 
 
