@@ -8,6 +8,7 @@ messages go to standard error. Set COMPANION_DEBUG=1 to see tracebacks.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -31,6 +32,9 @@ def _simulate(args: argparse.Namespace) -> int:
     from companion.sim.scenario import load_scenario
 
     scenario = load_scenario(resolve_scenario(args.scenario), seed=args.seed)
+    if args.kind is not None:
+        scenario = dataclasses.replace(
+            scenario, filter=dataclasses.replace(scenario.filter, kind=args.kind))
     with progress_bar(scenario.name, unit="step") as bar:
         result = simulate(scenario, progress=bar.update_to)
     summary = result.summary()
@@ -57,8 +61,20 @@ def _study(args: argparse.Namespace) -> int:
     if args.scheduler is not None:
         check_scheduler_address(args.scheduler)
     run_study(seeds=args.seeds, out_dir=args.out, jobs=args.jobs, only=args.only, steps=args.steps,
-              scheduler=args.scheduler)
+              scheduler=args.scheduler, kinds=_kinds(args.kinds))
     return EXIT_OK
+
+
+def _kinds(text: str) -> list[str]:
+    """The estimator kinds of a comma-separated --kinds value; ConfigError names a bad one."""
+    from companion.sat.filter import FilterKind
+
+    kinds = [k.strip() for k in text.split(",") if k.strip()]
+    known = [k.value for k in FilterKind]
+    bad = [k for k in kinds if k not in known]
+    if bad or not kinds:
+        raise ConfigError("--kinds", f"expected names from {', '.join(known)}, got {text!r}")
+    return list(dict.fromkeys(kinds))
 
 
 def _battery(args: argparse.Namespace) -> int:
@@ -162,6 +178,14 @@ def _replay(args: argparse.Namespace) -> int:
     config = load_config(args.config) if args.config else None
     truth = load_truth(args.truth) if args.truth else None
     source: Path = args.run_or_log
+    if args.kind is not None:
+        from companion.run_folder import read_config
+
+        if config is None and not source.is_dir():
+            raise ConfigError("--config", "a flight log replays with its configuration")
+        base = config if config is not None else read_config(source)
+        config = dataclasses.replace(
+            base, filter=dataclasses.replace(base.filter, kind=args.kind))
     times = FrameTimes(args.frame_times, args.frame_offset_s, args.frame_rate_hz)
     with progress_bar(f"replay {source.name}", unit="step") as bar:
         if source.is_dir():
@@ -267,6 +291,10 @@ def _positive_int(text: str) -> int:
     return value
 
 
+KINDS = ("gmphd", "lmb")
+"""The estimator kinds, by their filter.kind names (companion.sat.filter.FilterKind)."""
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every subcommand."""
     parser = argparse.ArgumentParser(prog="companion", description=__doc__.splitlines()[0])
@@ -277,6 +305,8 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
     sim.add_argument("--json", action="store_true", help="print the result as one JSON object")
     sim.add_argument("--out", type=Path, default=None, help="write plots to this directory")
+    sim.add_argument("--kind", choices=KINDS, default=None,
+                     help="the estimator, overriding the scenario's filter.kind")
     sim.set_defaults(run=_simulate)
 
     study = sub.add_parser("study", help="the paper's whole simulation study, Monte Carlo")
@@ -288,6 +318,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="run only the experiments whose scenario name contains this text")
     study.add_argument("--steps", type=_positive_int, default=None,
                        help="cut every run to this many steps (a quick look, not the figures)")
+    study.add_argument("--kinds", default="gmphd,lmb", metavar="KIND,...",
+                       help="estimators to run side by side (gmphd, lmb; default both)")
     study.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
                        help="run on this dask.distributed scheduler instead of local processes")
     study.set_defaults(run=_study)
@@ -343,6 +375,8 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument("--config", type=Path, default=None,
                         help="the configuration: another one to tune a run with (default: the "
                              "run's own); required with a log")
+    replay.add_argument("--kind", choices=KINDS, default=None,
+                        help="the estimator, overriding the configuration's filter.kind")
     replay.add_argument("--recorded-detections", action="store_true",
                         help="use a run's recorded detections even where its frames were kept")
     replay.add_argument("--out", type=Path, default=None,

@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from companion.cli import main
+from companion.cli import KINDS, main
+from companion.sat.filter import FilterKind
 from companion.scenario_lookup import shipped_scenarios
 from companion.sim.scenario import load_scenario
 
@@ -137,7 +138,8 @@ def test_quick_study_writes_every_table_and_plot(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out_dir = tmp_path / "study"
-    args = ["study", "--seeds", "1", "--steps", "60", "--jobs", "2", "--out", str(out_dir)]
+    args = ["study", "--seeds", "1", "--steps", "60", "--jobs", "2", "--out", str(out_dir),
+            "--kinds", "gmphd"]
     assert main(args) == 0
     markdown = (out_dir / "tables.md").read_text()
     assert capsys.readouterr().out.strip() == markdown.strip()
@@ -153,3 +155,31 @@ def test_quick_study_writes_every_table_and_plot(
     assert set(header) >= CONTRACT_KEYS
     assert len(list((out_dir / "plots").glob("*.png"))) == 10
     assert len(list((out_dir / "runs").glob("*.png"))) == 14 * 4
+
+
+def test_study_runs_both_estimators_side_by_side(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out_dir = tmp_path / "study"
+    args = ["study", "--seeds", "2", "--steps", "200", "--jobs", "2", "--out", str(out_dir),
+            "--only", "exact-c10-nopush"]
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    table = (out_dir / "kinds.md").read_text()
+    assert table.strip() in printed
+    header = table.splitlines()[2]
+    assert header == "| scenario | measure | gmphd | lmb |"
+    rows = [line for line in table.splitlines() if "paper-lawnmower-exact-c10-nopush" in line]
+    assert len(rows) == 10  # every measure, one cell per kind
+    count = next(line for line in rows if "count = truth" in line)
+    assert count.count("/2") == 2
+    assert "## filter.kind = lmb" in printed
+
+
+def test_bad_kinds_are_refused(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["study", "--kinds", "gmphd,glmb"]) == 2
+    assert "--kinds" in capsys.readouterr().err
+
+
+def test_the_cli_knows_every_estimator_kind() -> None:
+    assert tuple(k.value for k in FilterKind) == KINDS

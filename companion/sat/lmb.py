@@ -88,9 +88,9 @@ def grow_unseen(
     predicted: Mixture, tracks: Tracks, t_before_s: float, t_now_s: float, params: TrackParams
 ) -> Mixture:
     """The components of confirmed tracks with the motion class's displacement variance added
-    for the step (Eq. iou_variance), and every component's mass outside the search area gone
-    (targets stay in it: p_S(x) = 1_A(x), with the truncated moments): a Bernoulli's own
-    covariance says how far its target may have gone since its last detection."""
+    for the step (Eq. iou_variance), and every component that reaches past the search area
+    moment-matched to its part inside (targets stay in the area; existence is unchanged): a
+    Bernoulli's own covariance says how far its target may have gone since its last detection."""
     motion = params.motion
     covs = predicted.covs
     if motion.speed_m_s > 0.0 and predicted.size and tracks.confirmed.any():
@@ -110,9 +110,8 @@ def grow_unseen(
         return grown
     mass = prob_in_region(grown.means[:, :2], grown.covs[:, :2, :2], params.area, check=False)
     edge = np.flatnonzero((mass < 1.0 - 1e-9) & (mass > 1e-6))
-    weights = np.where(mass > 1e-6, grown.weights, 0.0)  # (all but gone from the area: gone)
     if edge.size == 0:
-        return Mixture(weights, grown.means, grown.covs, grown.labels)
+        return grown
     means, covs = grown.means.copy(), grown.covs.copy()
     inside, first, second = truncation_moments(
         means[edge, :2], covs[edge, :2, :2], params.area, check=False
@@ -123,8 +122,7 @@ def grow_unseen(
     if grown.dim == 4:
         covs[edge, :2, 2:] = 0.0
         covs[edge, 2:, :2] = 0.0
-    weights[edge] *= mass[edge]
-    return Mixture(weights, means, covs, grown.labels)
+    return Mixture(grown.weights, means, covs, grown.labels)
 
 
 def seen_moving(tracks: Tracks, motion: TargetMotion) -> BoolArray:

@@ -55,6 +55,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # The previous release's estimator: no motion class (a track's uncertainty saturates with
     # the GP's), confirmation by detections alone and no ending by evidence.
     "round-1": {"target_speed": 0.0, "confirm_existence": 1e-6, "drop_existence": 1e-6},
+    # The labeled multi-Bernoulli filter at its defaults, beside the GM-PHD.
+    "lmb": {"kind": "lmb"},
 }
 TIMING_COLUMNS = ("wall_s", "filter_s", "step_ms_median", "step_ms_p95")
 ID_COLUMNS = ("family", "seed", "variant", "filter_kind", "planner")

@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 
 from companion.errors import CompanionError
 from companion.progress import progress_bar
+from companion.sat.filter import FilterKind
 from companion.scenario_lookup import resolve_scenario
 from companion.sim.engine import run_tasks
 
@@ -96,9 +97,11 @@ STONE_SOUP_OSPA_TAIL = 48.6
 
 
 def run_one(
-    scenario: str, seed: int, plot_dir: Path | None, steps: int | None = None
+    scenario: str, seed: int, plot_dir: Path | None, steps: int | None = None,
+    kind: str = "gmphd",
 ) -> dict[str, Any]:
-    """Simulate one shipped scenario with one seed; its summary and time series (a worker task).
+    """Simulate one shipped scenario with one seed and estimator kind; its summary and time
+    series (a worker task).
 
     `steps` shortens every run to that many steps (a quick look, not the study's figures).
     """
@@ -106,6 +109,7 @@ def run_one(
     from companion.sim.scenario import load_scenario
 
     loaded = load_scenario(resolve_scenario(scenario), seed=seed)
+    loaded = replace(loaded, filter=replace(loaded.filter, kind=FilterKind(kind)))
     result = simulate(loaded if steps is None else replace(loaded, steps=steps))
     if plot_dir is not None:
         from companion.sim.plots import plot_run
@@ -306,6 +310,44 @@ def _write_outputs(runs: Runs, out_dir: Path, seeds: int, steps: int | None) -> 
     return markdown
 
 
+KIND_ROWS = (
+    ("count = truth at the end", None),
+    ("confirmed tracks at the end", "tracks_confirmed"),
+    ("Mahalanobis to closest", "mahal_closest_mean"),
+    ("NEES (2 = calibrated)", "nees_mean"),
+    ("OSPA last 20 % (m)", "ospa_tail_mean"),
+    ("GOSPA last 20 % (m)", "gospa_tail_mean"),
+    ("GOSPA missed + false at the end", None),
+    ("every target confirmed at (s)", "t_all_confirmed_s"),
+    ("step median (ms)", "step_ms_median"),
+    ("step p95 (ms)", "step_ms_p95"),
+)
+
+
+def kinds_table(by_kind: dict[str, Runs]) -> str:
+    """The estimator kinds side by side: one row per experiment and measure, a column each."""
+    kinds = list(by_kind)
+    first = by_kind[kinds[0]]
+    header = ["scenario", "measure", *kinds]
+    rows = []
+    for scenario in first.by_scenario:
+        for label, key in KIND_ROWS:
+            cells = []
+            for kind in kinds:
+                runs = by_kind[kind]
+                if key is not None:
+                    cells.append(_fmt(runs.values(scenario, key), 3 if "ms" in key else 2))
+                elif label.startswith("count"):
+                    ok = runs.values(scenario, "tracks_confirmed") == runs.values(
+                        scenario, "true_count")
+                    cells.append(f"{int(ok.sum())}/{ok.size}")
+                else:
+                    cells.append(_fmt(runs.values(scenario, "gospa_missed_final")
+                                      + runs.values(scenario, "gospa_false_final")))
+            rows.append([scenario, label, *cells])
+    return _table("Estimators side by side (filter.kind), the same seeds", header, rows)
+
+
 def run_study(
     seeds: int,
     out_dir: Path,
@@ -313,33 +355,50 @@ def run_study(
     only: str | None = None,
     steps: int | None = None,
     scheduler: str | None = None,
-) -> Runs:
-    """Run every experiment for seeds 1..seeds, print and write the tables and plots.
+    kinds: Sequence[str] = ("gmphd",),
+) -> dict[str, Runs]:
+    """Run every experiment for seeds 1..seeds with each estimator kind, print and write the
+    tables and plots (under out_dir/KIND when there are several kinds, with kinds.md beside).
 
     The runs go to `jobs` local worker processes, or to the dask scheduler at `scheduler`.
     """
     experiments = [e for e in ALL if only is None or only in e.scenario]
     if not experiments:
         raise CompanionError(f"--only {only!r} matches no experiment")
-    tasks = [(e.scenario, seed) for e in experiments for seed in range(1, seeds + 1)]
-    run_plots = out_dir / "runs"
-    run_plots.mkdir(parents=True, exist_ok=True)
+    several = len(kinds) > 1
+    tasks = [(e.scenario, seed, kind) for kind in kinds for e in experiments
+             for seed in range(1, seeds + 1)]
+    dirs = {kind: out_dir / kind if several else out_dir for kind in kinds}
+    for path in dirs.values():
+        (path / "runs").mkdir(parents=True, exist_ok=True)
     with progress_bar("study", "run") as bar:
         outputs = run_tasks(
             run_one,
-            [(name, seed, run_plots if seed == 1 else None, steps) for name, seed in tasks],
+            [(name, seed, dirs[kind] / "runs" if seed == 1 else None, steps, kind)
+             for name, seed, kind in tasks],
             jobs, scheduler, bar.update_to,
         )
     results = dict(zip(tasks, outputs, strict=True))
-    runs = Runs({e.scenario: [results[(e.scenario, s)] for s in range(1, seeds + 1)]
-                 for e in experiments})
-    if len(experiments) == len(ALL):
-        print(_write_outputs(runs, out_dir, seeds, steps))
-        print(f"wrote {out_dir / 'tables.md'}, CSV tables and plots under {out_dir}",
-              file=sys.stderr)
-    else:
-        for e in experiments:
-            print(f"{e.scenario}: " + ", ".join(
-                f"{key}={_fmt(runs.values(e.scenario, key))}"
-                for key in ("tracks_confirmed", "mahal_closest_mean", "ospa_tail_mean")))
-    return runs
+    by_kind = {
+        kind: Runs({e.scenario: [results[(e.scenario, s, kind)] for s in range(1, seeds + 1)]
+                    for e in experiments})
+        for kind in kinds
+    }
+    for kind, runs in by_kind.items():
+        if several:
+            print(f"## filter.kind = {kind}\n")
+        if len(experiments) == len(ALL):
+            print(_write_outputs(runs, dirs[kind], seeds, steps))
+            print(f"wrote {dirs[kind] / 'tables.md'}, CSV tables and plots under {dirs[kind]}",
+                  file=sys.stderr)
+        else:
+            for e in experiments:
+                print(f"{e.scenario}: " + ", ".join(
+                    f"{key}={_fmt(runs.values(e.scenario, key))}"
+                    for key in ("tracks_confirmed", "mahal_closest_mean", "ospa_tail_mean")))
+    if several:
+        side_by_side = kinds_table(by_kind)
+        print(side_by_side)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "kinds.md").write_text(side_by_side)
+    return by_kind
