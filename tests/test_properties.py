@@ -462,10 +462,13 @@ _BAD_SCANS: dict[str, dict[str, Any]] = {
 }
 
 
+@pytest.mark.parametrize("kind", list(FilterKind))
 @pytest.mark.parametrize("push", ["paper", "moment"])
 @pytest.mark.parametrize("bad", sorted(_BAD_SCANS))
-def test_invalid_scans_raise_input_error(bad: str, push: Literal["paper", "moment"]) -> None:
-    spec = replace(_valid_spec(), push_mode=push)
+def test_invalid_scans_raise_input_error(
+    bad: str, push: Literal["paper", "moment"], kind: FilterKind
+) -> None:
+    spec = replace(_valid_spec(), push_mode=push, kind=kind)
     params = sat_params(spec, 0.9, 0.1, 1.0)
     state = _one_component_state(params)
     scan = replace(_GOOD, **_BAD_SCANS[bad])

@@ -52,6 +52,10 @@ BoolArray = NDArray[np.bool_]
 MAX_HYPOTHESES = 200
 """Association hypotheses kept per cluster of Bernoullis that share measurements."""
 
+GATE_SQ = 25.0
+"""Squared Mahalanobis gate of an association (under P + R): a target's own measurement falls
+outside it with probability exp(-12.5) ~ 4e-6, so gating changes no marginal measurably."""
+
 _HYPOTHESIS_GAP = math.log(1e6)
 """Hypotheses a million times less likely than a cluster's best are not enumerated."""
 
@@ -244,7 +248,7 @@ def update(
     found = detection(predicted, vis.p_d, z, r_cov, kappa, 0.0)
     n = predicted.size
     raw = found.children.weights.reshape(m, n) * np.maximum(kappa + found.explained, _TINY)[:, None]
-    raw *= _in_gate(predicted, z, r_cov, params.tracks.gate_sq)
+    raw *= _in_gate(predicted, z, r_cov, GATE_SQ)
     phi = np.zeros((m, n_rows))
     for i in range(m):
         phi[i] = _per_row(row, raw[i], n_rows) / kappa
