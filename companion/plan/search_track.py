@@ -1,0 +1,345 @@
+"""The search-and-track planner: where to look next, from what the estimator says is not yet known.
+
+Pure: a function of (robot position, mixture, tracks, world, progress, time) -> (waypoint,
+progress), with no clock, no randomness and no I/O. The search area is covered by a grid of
+cells, each holding the expected number of targets on it that no scan has found yet: at the start
+`unseen_targets` spread evenly over the area, times (1 - p_D) for each look at the cell (a look: the
+cell enters the sensor's sure view, or stays in it for another `look_s` seconds). The goals are
+
+- search: the mixture's components that support no confirmed track (the PHD mass no detection
+  has explained), valued by their weight, and the next point of a sweep over unseen ground, valued
+  by the unseen mass in its lane;
+- track: each confirmed track, valued by the probability that its target has moved farther than
+  half the view from the track's mean (from its honest covariance, grown with the time unseen),
+  times the probability that a look at its mean still sees it, times its existence;
+
+all in one unit, expected targets. The plan is the order of the best `goals` goals that maximises
+the sum of value x exp(-distance flown to it / horizon) (every order tried), and the waypoint is
+its first goal, kept until it is reached or worth less than half what it was when chosen (so that
+the robot does not dither between two goals whose values change as it flies). The search ends
+(finished) once the expected number of targets left to find (the cells' mass plus the unconfirmed
+components' weights) is below `stop_below`; the planner then keeps revisiting tracks.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.errors import InputError
+from companion.plan.world import World
+from companion.sat.fov import ConvexPolygon
+from companion.sat.mixture import Mixture
+from companion.sat.motion import TargetMotion
+from companion.sat.tracks import Tracks, grown_covs
+
+__all__ = ["MAX_CELLS", "SearchProgress", "SearchTrack", "SearchTrackParams", "best_order",
+           "inscribed_radius_m", "make_search_track"]
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+BoolArray = NDArray[np.bool_]
+
+REACHED_M = 1.0  # a goal this close is reached: plan again
+MAX_CELLS = 2500  # the grid is made coarser than view/2 if the area would need more cells
+
+
+@dataclass(frozen=True, slots=True)
+class SearchTrackParams:
+    """What the planner knows of the sensor, the targets and when to stop searching."""
+
+    view_radius_m: float  # radius of the disk around the robot that the sensor surely sees
+    p_detect: float = 0.98  # p(D|F) inside that disk
+    unseen_targets: float = 1.0  # expected targets beside the initial belief, spread evenly
+    stop_below: float = 0.5  # the search ends when fewer targets than this are left to find
+    motion: TargetMotion = field(default_factory=lambda: TargetMotion(speed_m_s=0.0))
+    area_xy: FloatArray | None = None  # (k, 2) convex search-area polygon; None: the world
+    goals: int = 5  # goals ordered in one plan (all orders are tried: keep it small)
+    horizon_m: float | None = None  # distance at which a goal's value falls by 1/e; None: world
+    look_s: float = 5.0  # a cell that stays in view is looked at again after this long
+
+    def __post_init__(self) -> None:
+        _positive("view_radius_m", self.view_radius_m)
+        if not (math.isfinite(self.p_detect) and 0.0 < self.p_detect <= 1.0):
+            raise InputError(f"p_detect: must be in (0, 1], got {self.p_detect!r}",
+                             reason=f"must be in (0, 1], got {self.p_detect!r}")
+        _non_negative("unseen_targets", self.unseen_targets)
+        _non_negative("stop_below", self.stop_below)
+        if not 1 <= self.goals <= 7:
+            raise InputError(f"goals: must be 1 to 7, got {self.goals!r}",
+                             reason=f"must be 1 to 7, got {self.goals!r}")
+        if self.horizon_m is not None:
+            _positive("horizon_m", self.horizon_m)
+        _positive("look_s", self.look_s)
+
+
+def _positive(name: str, value: float) -> None:
+    """InputError naming the parameter unless value is finite and > 0."""
+    if not (math.isfinite(value) and value > 0.0):
+        raise InputError(f"{name}: must be > 0, got {value!r}",
+                         reason=f"must be > 0, got {value!r}")
+
+
+def _non_negative(name: str, value: float) -> None:
+    """InputError naming the parameter unless value is finite and >= 0."""
+    if not (math.isfinite(value) and value >= 0.0):
+        raise InputError(f"{name}: must be >= 0, got {value!r}",
+                         reason=f"must be >= 0, got {value!r}")
+
+
+@dataclass(frozen=True, slots=True)
+class SearchProgress:
+    """The planner's memory: looks per cell, which cells were in view, when, and the mass left."""
+
+    looks: IntArray  # (n,) looks at each cell so far
+    in_view: BoolArray  # (n,) cells in view at the last call
+    looked_t_s: FloatArray  # (n,) time of each cell's last look
+    t_s: float  # time of the last call
+    left: float  # expected targets left to find after the last call
+    searched: bool  # the stop rule has held once: the search is over
+    goal_xy: FloatArray | None = None  # the goal flown to, kept until reached or worth less
+    goal_value: float = 0.0  # its value when chosen
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SearchTrack:
+    """The search-and-track planner over a fixed grid (see the module docstring)."""
+
+    params: SearchTrackParams
+    cells_xy: FloatArray  # (n, 2) centres of the cells inside the area
+    cell_m: float  # side of a cell
+    seen_m: float  # a cell whose centre is this close to the robot is wholly in view
+    sweep_xy: FloatArray  # (s, 2) sweep points in lawn-mower order
+    sweep_cells: tuple[IntArray, ...]  # cells each sweep point looks at
+    lane_of_sweep: IntArray  # (s,) lane of each sweep point
+    lane_cells: tuple[IntArray, ...]  # cells the sweep points of each lane look at
+    horizon_m: float
+
+    def start(self) -> SearchProgress:
+        """The memory before the first call: nothing looked at, everything left to find."""
+        n = self.cells_xy.shape[0]
+        return SearchProgress(np.zeros(n, dtype=np.int64), np.zeros(n, dtype=bool),
+                              np.full(n, -math.inf), -math.inf, math.inf, False)
+
+    def next_waypoint(
+        self, robot_xy: FloatArray, mixture: Mixture, tracks: Tracks, world: World,
+        progress: SearchProgress | int, t_s: float = 0.0,
+    ) -> tuple[FloatArray | None, SearchProgress]:
+        """The first goal of the best plan from here (None: nothing worth flying to) and the
+        memory after looking from robot_xy at t_s; progress 0 starts afresh."""
+        memory = self.start() if isinstance(progress, int) else progress
+        memory = self._look(robot_xy, memory, t_s)
+        unseen = self._unseen_mass(memory)
+        found = _found_ids(tracks)
+        comp_xy, comp_value = self._component_goals(mixture, found, memory)
+        left = float(unseen.sum() + comp_value.sum())
+        searched = memory.searched or left < self.params.stop_below
+        memory = replace(memory, left=left, searched=searched)
+        goals_xy, values = [comp_xy], [comp_value]
+        if not searched:
+            sweep = self._sweep_goal(memory, unseen)
+            if sweep is not None:
+                goals_xy.append(sweep[0][None, :])
+                values.append(np.array([sweep[1]]))
+        track_xy, track_value = self._track_goals(tracks, t_s)
+        goals_xy.append(track_xy)
+        values.append(track_value)
+        memory = self._choose(robot_xy, np.concatenate(goals_xy), np.concatenate(values), memory)
+        waypoint = memory.goal_xy
+        return (None if waypoint is None else world.clip(waypoint)), memory
+
+    def finished(self, progress: SearchProgress | int) -> bool:
+        """True once the expected number of targets left to find has fallen below stop_below."""
+        return not isinstance(progress, int) and progress.searched
+
+    def _look(self, robot_xy: FloatArray, memory: SearchProgress, t_s: float) -> SearchProgress:
+        """The memory after the sensor looked from robot_xy at t_s."""
+        dist = np.hypot(*(self.cells_xy - robot_xy).T)
+        in_view = dist <= self.seen_m
+        again = in_view & memory.in_view & (t_s - memory.looked_t_s >= self.params.look_s)
+        look = (in_view & ~memory.in_view) | again
+        looks = memory.looks + look
+        looked_t_s = np.where(look, t_s, memory.looked_t_s)
+        return replace(memory, looks=looks, in_view=in_view, looked_t_s=looked_t_s, t_s=t_s)
+
+    def _unseen_mass(self, memory: SearchProgress) -> FloatArray:
+        """(n,) expected targets on each cell that no look has found."""
+        n = self.cells_xy.shape[0]
+        per_cell = self.params.unseen_targets / max(n, 1)
+        miss: FloatArray = per_cell * (1.0 - self.params.p_detect) ** memory.looks
+        return miss
+
+    def _cell_of(self, xy: FloatArray) -> IntArray:
+        """(m,) the nearest cell to each point."""
+        if xy.shape[0] == 0 or self.cells_xy.shape[0] == 0:
+            return np.zeros(xy.shape[0], dtype=np.int64)
+        d2 = ((xy[:, None, :] - self.cells_xy[None, :, :]) ** 2).sum(axis=2)
+        nearest: IntArray = np.argmin(d2, axis=1)
+        return nearest
+
+    def _component_goals(
+        self, mixture: Mixture, found: IntArray, memory: SearchProgress
+    ) -> tuple[FloatArray, FloatArray]:
+        """Means and values of the components that support no confirmed track: their weight,
+        halved for each look after the first already spent on the cell under them."""
+        unfound = ~np.isin(mixture.labels, found)
+        xy = mixture.means[unfound, :2]
+        weights = mixture.weights[unfound]
+        inside = self._inside(xy)
+        xy, weights = xy[inside], weights[inside]
+        looks = memory.looks[self._cell_of(xy)] if self.cells_xy.shape[0] else np.zeros(0)
+        value: FloatArray = weights * 0.5 ** np.maximum(looks - 1, 0)
+        return xy, value
+
+    def _inside(self, xy: FloatArray) -> BoolArray:
+        """Whether each point is within one cell of the area's cells (a goal worth flying to)."""
+        if xy.shape[0] == 0 or self.cells_xy.shape[0] == 0:
+            return np.zeros(xy.shape[0], dtype=bool)
+        d2 = ((xy[:, None, :] - self.cells_xy[None, :, :]) ** 2).sum(axis=2)
+        near: BoolArray = d2.min(axis=1) <= 2.0 * self.cell_m**2
+        return near
+
+    def _sweep_goal(
+        self, memory: SearchProgress, unseen: FloatArray
+    ) -> tuple[FloatArray, float] | None:
+        """The first sweep point with a cell not yet looked at, valued by the unseen mass left in
+        its lane; None once every cell has been looked at."""
+        for i, cells in enumerate(self.sweep_cells):
+            if cells.size and (memory.looks[cells] == 0).any():
+                lane = self.lane_cells[int(self.lane_of_sweep[i])]
+                return self.sweep_xy[i], float(unseen[lane][memory.looks[lane] == 0].sum())
+        return None
+
+    def _track_goals(self, tracks: Tracks, t_s: float) -> tuple[FloatArray, FloatArray]:
+        """Means and values of the confirmed tracks: existence x P(moved beyond half the view) x
+    P(still in the view centred on the mean), from the track's honest covariance."""
+        conf = tracks.confirmed
+        if not conf.any():
+            return np.zeros((0, 2)), np.zeros(0)
+        covs = grown_covs(tracks, max(t_s, float(tracks.last_t_s.max())), self.params.motion)
+        var_m2 = np.maximum(0.5 * (covs[conf, 0, 0] + covs[conf, 1, 1]), 1e-9)
+        r2 = self.params.view_radius_m**2
+        lost = np.exp(-0.25 * r2 / (2.0 * var_m2))  # farther than half the view from its mean
+        in_view = 1.0 - np.exp(-r2 / (2.0 * var_m2))  # inside the view centred on its mean
+        value: FloatArray = tracks.existence[conf] * lost * in_view
+        return tracks.means[conf, :2], value
+
+    def _choose(self, robot_xy: FloatArray, goals_xy: FloatArray, values: FloatArray,
+                memory: SearchProgress) -> SearchProgress:
+        """The memory with the goal to fly to: the one flown to until it is reached or worth less
+        than half its value when chosen (following it if it moves), else a new plan's first."""
+        worth = values > 1e-6
+        goals_xy, values = goals_xy[worth], values[worth]
+        if memory.goal_xy is not None and values.size:
+            dist = np.hypot(*(goals_xy - memory.goal_xy).T)
+            same = dist <= self.cell_m
+            if same.any() and np.hypot(*(memory.goal_xy - robot_xy)) > REACHED_M:
+                best = int(np.argmax(np.where(same, values, -1.0)))
+                if values[best] >= 0.5 * memory.goal_value:
+                    return replace(memory, goal_xy=goals_xy[best])
+        if values.size == 0:
+            return replace(memory, goal_xy=None, goal_value=0.0)
+        near = values * np.exp(-np.hypot(*(goals_xy - robot_xy).T) / self.horizon_m)
+        top = np.argsort(-near, kind="stable")[: self.params.goals]
+        first = int(top[best_order(robot_xy, goals_xy[top], values[top], self.horizon_m)])
+        return replace(memory, goal_xy=goals_xy[first], goal_value=float(values[first]))
+
+
+def best_order(robot_xy: FloatArray, goals_xy: FloatArray, values: FloatArray,
+               horizon_m: float) -> int:
+    """Index of the goal to visit first in the order maximising sum(value exp(-flown/horizon))."""
+    k = goals_xy.shape[0]
+    if k == 1:
+        return 0
+    orders = np.array(list(itertools.permutations(range(k))), dtype=np.int64)  # (k!, k)
+    points = np.vstack([robot_xy[None, :], goals_xy])
+    hop = np.hypot(*(points[:, None, :] - points[None, :, :]).transpose(2, 0, 1))
+    path = np.column_stack([np.zeros(len(orders), dtype=np.int64), orders + 1])
+    flown = np.cumsum(hop[path[:, :-1], path[:, 1:]], axis=1)
+    score = (values[orders] * np.exp(-flown / horizon_m)).sum(axis=1)
+    return int(orders[int(np.argmax(score)), 0])
+
+
+def _found_ids(tracks: Tracks) -> IntArray:
+    """Ids of the confirmed tracks."""
+    ids: IntArray = tracks.ids[tracks.confirmed]
+    return ids
+
+
+def make_search_track(world: World, params: SearchTrackParams) -> SearchTrack:
+    """The planner over the world (or the params' convex area inside it), cells of about half the
+    view radius, and sweep lanes as wide as the sure view."""
+    area = _area(world, params.area_xy)
+    cell_m = max(params.view_radius_m / 2.0,
+                 math.sqrt(world.width_m * world.height_m / MAX_CELLS))
+    seen_m = max(params.view_radius_m - cell_m / math.sqrt(2.0), 0.5 * cell_m)
+    cells_xy = _cells(world, cell_m, area)
+    sweep_xy, lanes = _sweep_points(world, cell_m, seen_m, area)
+    sweep_cells = tuple(
+        np.flatnonzero(np.hypot(*(cells_xy - p).T) <= seen_m).astype(np.int64) for p in sweep_xy
+    )
+    lane_cells = tuple(
+        np.unique(np.concatenate(
+            [np.zeros(0, dtype=np.int64)]
+            + [c for c, k in zip(sweep_cells, lanes, strict=True) if k == lane]))
+        for lane in range(int(lanes.max()) + 1 if lanes.size else 0)
+    )
+    horizon_m = params.horizon_m or max(world.width_m, world.height_m)
+    return SearchTrack(params, cells_xy, cell_m, seen_m, sweep_xy, sweep_cells, lanes, lane_cells,
+                       horizon_m)
+
+
+def _area(world: World, area_xy: FloatArray | None) -> ConvexPolygon:
+    """The search area as a convex polygon (the world's rectangle when none is given)."""
+    if area_xy is None:
+        w, h = world.width_m, world.height_m
+        return ConvexPolygon(np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]]))
+    return ConvexPolygon(np.asarray(area_xy, dtype=np.float64))
+
+
+def _cells(world: World, cell_m: float, area: ConvexPolygon) -> FloatArray:
+    """Centres of the grid's cells that lie inside the area."""
+    xs = np.arange(cell_m / 2.0, world.width_m, cell_m)
+    ys = np.arange(cell_m / 2.0, world.height_m, cell_m)
+    grid = np.array(np.meshgrid(xs, ys, indexing="ij")).reshape(2, -1).T
+    inside: FloatArray = grid[area.contains(grid)] if grid.size else np.zeros((0, 2))
+    return inside
+
+
+def _sweep_points(
+    world: World, cell_m: float, seen_m: float, area: ConvexPolygon
+) -> tuple[FloatArray, IntArray]:
+    """Lawn-mower points inside the area: north-south lanes as wide as the sure view (2 seen_m),
+    one point per cell along each lane, alternating direction; and each point's lane."""
+    lane_m = max(2.0 * seen_m, cell_m)
+    lanes_x = np.arange(min(seen_m, world.width_m / 2.0), world.width_m, lane_m)
+    if lanes_x.size and world.width_m - lanes_x[-1] > seen_m:
+        lanes_x = np.append(lanes_x, world.width_m - min(seen_m, world.width_m / 2.0))
+    ys = np.arange(cell_m / 2.0, world.height_m, cell_m)
+    points: list[FloatArray] = []
+    lanes: list[int] = []
+    for lane, x in enumerate(lanes_x):
+        along = ys if lane % 2 == 0 else ys[::-1]
+        lane_points = np.column_stack([np.full(along.size, x), along])
+        keep = lane_points[area.contains(lane_points)]
+        points.append(keep)
+        lanes += [lane] * keep.shape[0]
+    xy = np.concatenate(points) if points else np.zeros((0, 2))
+    return xy, np.asarray(lanes, dtype=np.int64)
+
+
+def inscribed_radius_m(polygon_xy: FloatArray) -> float:
+    """Radius of the largest disk around the origin inside a convex polygon around it (0 when the
+    origin is outside)."""
+    p = np.asarray(polygon_xy, dtype=np.float64)
+    a, b = p, np.roll(p, -1, axis=0)
+    edge = b - a
+    length = np.hypot(*edge.T)
+    # Signed distance of the origin from each edge's line, positive on the polygon's side.
+    cross = (edge[:, 0] * -a[:, 1] - edge[:, 1] * -a[:, 0]) / np.maximum(length, 1e-12)
+    sign = 1.0 if float(np.sum(a[:, 0] * b[:, 1] - b[:, 0] * a[:, 1])) > 0 else -1.0
+    return max(float(np.min(sign * cross)), 0.0)
