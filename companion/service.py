@@ -43,6 +43,7 @@ from companion.notify import Notifier
 from companion.pipeline import Pipeline, StepRecord, camera_model
 from companion.plan.gate import GateAction, GateLimits, Setpoint, gate
 from companion.plan.planners import LawnMower, Planner, make_planner
+from companion.plan.search_track import SearchTrackParams, inscribed_radius_m
 from companion.plan.setpoints import (
     Carrot,
     gate_limits,
@@ -56,6 +57,7 @@ from companion.record.rotation import make_room
 from companion.record.tlog import TlogWriter
 from companion.report import TrackRecord, confirmed_tracks
 from companion.run_folder import RunFolder
+from companion.sim.footprint import camera_footprint_xy
 from companion.vehicle.events import UNKNOWN_PREFIX
 from companion.vehicle.mavsdk_link import MavsdkLink, VehicleError
 from companion.vehicle.modes import mission_mode
@@ -146,7 +148,20 @@ class Service:
     def _make_planner(self, start_xy: FloatArray) -> Planner:
         """The configured planner; a lawn mower's passes each end where the search started."""
         s, world = self.config.search, self.pipeline.frame.world
-        return make_planner(s.planner, world, world.clip(start_xy), s.lane_spacing_m, s.sweeps)
+        return make_planner(s.planner, world, world.clip(start_xy), s.lane_spacing_m, s.sweeps,
+                            self._search_params())
+
+    def _search_params(self) -> SearchTrackParams:
+        """What the search-and-track planner knows: the disk inside the level camera's footprint
+        at the search altitude, p(D|F), the targets' motion, the area and its stop rule."""
+        s, pipeline = self.config.search, self.pipeline
+        footprint = camera_footprint_xy(pipeline.camera, s.altitude_m, s.heading_deg)
+        view_m = max(inscribed_radius_m(footprint) - self.config.estimator.footprint_margin_m,
+                     0.5)
+        return SearchTrackParams(
+            view_radius_m=view_m, p_detect=pipeline.params.p_detect,
+            unseen_targets=float(s.expected_targets or 1), stop_below=s.stop_when_left,
+            motion=pipeline.params.tracks.motion, area_xy=pipeline.frame.area_xy_m)
 
     # -- the run -----------------------------------------------------------------------------
 
@@ -391,6 +406,8 @@ class Service:
         passes = 0
         if isinstance(self._planner, LawnMower):
             passes = self._carrot.progress * self.config.search.sweeps // len(self._planner.path_xy)
+        elif self._planner is not None and self._planner.finished(self._carrot.progress):
+            passes = 1  # the search-and-track planner's own stop rule: the area is covered
         return ms.MissionInputs(
             connected=st is not None and fresh,
             health_ok=st is not None and st.position_ok,
@@ -536,7 +553,7 @@ class Service:
             self._planner = self._make_planner(vehicle_xy_m)
         target, self._carrot = self._carrot.advance(
             self._planner, vehicle_xy_m, state.mixture, state.tracks, self.pipeline.frame.world,
-            self.config.search.speed_m_s, dt_s)
+            self.config.search.speed_m_s, dt_s, state.t_s)
         return target
 
     async def _send_setpoint(self, link: MavsdkLink, dt_s: float) -> None:

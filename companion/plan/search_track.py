@@ -32,13 +32,12 @@ from numpy.typing import NDArray
 
 from companion.errors import InputError
 from companion.plan.world import World
-from companion.sat.fov import ConvexPolygon
 from companion.sat.mixture import Mixture
 from companion.sat.motion import TargetMotion
 from companion.sat.tracks import Tracks, grown_covs
 
 __all__ = ["MAX_CELLS", "SearchProgress", "SearchTrack", "SearchTrackParams", "best_order",
-           "inscribed_radius_m", "make_search_track"]
+           "inscribed_radius_m", "inside_polygon", "make_search_track"]
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -57,7 +56,7 @@ class SearchTrackParams:
     unseen_targets: float = 1.0  # expected targets beside the initial belief, spread evenly
     stop_below: float = 0.5  # the search ends when fewer targets than this are left to find
     motion: TargetMotion = field(default_factory=lambda: TargetMotion(speed_m_s=0.0))
-    area_xy: FloatArray | None = None  # (k, 2) convex search-area polygon; None: the world
+    area_xy: FloatArray | None = None  # (k, 2) search-area polygon; None: the world
     goals: int = 5  # goals ordered in one plan (all orders are tried: keep it small)
     horizon_m: float | None = None  # distance at which a goal's value falls by 1/e; None: world
     look_s: float = 5.0  # a cell that stays in view is looked at again after this long
@@ -118,6 +117,7 @@ class SearchTrack:
     lane_of_sweep: IntArray  # (s,) lane of each sweep point
     lane_cells: tuple[IntArray, ...]  # cells the sweep points of each lane look at
     horizon_m: float
+    area_xy: FloatArray  # (k, 2) the search area's polygon
 
     def start(self) -> SearchProgress:
         """The memory before the first call: nothing looked at, everything left to find."""
@@ -195,6 +195,15 @@ class SearchTrack:
         value: FloatArray = weights * 0.5 ** np.maximum(looks - 1, 0)
         return xy, value
 
+    def _into_area(self, xy: FloatArray) -> FloatArray:
+        """The points, each outside the area replaced by the nearest cell centre (inside)."""
+        if xy.shape[0] == 0 or self.cells_xy.shape[0] == 0:
+            return xy
+        outside = ~inside_polygon(xy, self.area_xy)
+        out = xy.copy()
+        out[outside] = self.cells_xy[self._cell_of(xy[outside])]
+        return out
+
     def _inside(self, xy: FloatArray) -> BoolArray:
         """Whether each point is within one cell of the area's cells (a goal worth flying to)."""
         if xy.shape[0] == 0 or self.cells_xy.shape[0] == 0:
@@ -233,7 +242,7 @@ class SearchTrack:
         """The memory with the goal to fly to: the one flown to until it is reached or worth less
         than half its value when chosen (following it if it moves), else a new plan's first."""
         worth = values > 1e-6
-        goals_xy, values = goals_xy[worth], values[worth]
+        goals_xy, values = self._into_area(goals_xy[worth]), values[worth]
         if memory.goal_xy is not None and values.size:
             dist = np.hypot(*(goals_xy - memory.goal_xy).T)
             same = dist <= self.cell_m
@@ -273,12 +282,12 @@ def _found_ids(tracks: Tracks) -> IntArray:
 def make_search_track(world: World, params: SearchTrackParams) -> SearchTrack:
     """The planner over the world (or the params' convex area inside it), cells of about half the
     view radius, and sweep lanes as wide as the sure view."""
-    area = _area(world, params.area_xy)
+    area_xy = _area_xy(world, params.area_xy)
     cell_m = max(params.view_radius_m / 2.0,
                  math.sqrt(world.width_m * world.height_m / MAX_CELLS))
     seen_m = max(params.view_radius_m - cell_m / math.sqrt(2.0), 0.5 * cell_m)
-    cells_xy = _cells(world, cell_m, area)
-    sweep_xy, lanes = _sweep_points(world, cell_m, seen_m, area)
+    cells_xy = _cells(world, cell_m, area_xy)
+    sweep_xy, lanes = _sweep_points(world, cell_m, seen_m, area_xy)
     sweep_cells = tuple(
         np.flatnonzero(np.hypot(*(cells_xy - p).T) <= seen_m).astype(np.int64) for p in sweep_xy
     )
@@ -290,28 +299,43 @@ def make_search_track(world: World, params: SearchTrackParams) -> SearchTrack:
     )
     horizon_m = params.horizon_m or max(world.width_m, world.height_m)
     return SearchTrack(params, cells_xy, cell_m, seen_m, sweep_xy, sweep_cells, lanes, lane_cells,
-                       horizon_m)
+                       horizon_m, area_xy)
 
 
-def _area(world: World, area_xy: FloatArray | None) -> ConvexPolygon:
-    """The search area as a convex polygon (the world's rectangle when none is given)."""
+def _area_xy(world: World, area_xy: FloatArray | None) -> FloatArray:
+    """The search area's polygon (the world's rectangle when none is given)."""
     if area_xy is None:
         w, h = world.width_m, world.height_m
-        return ConvexPolygon(np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]]))
-    return ConvexPolygon(np.asarray(area_xy, dtype=np.float64))
+        return np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]])
+    polygon = np.asarray(area_xy, dtype=np.float64)
+    if polygon.ndim != 2 or polygon.shape[0] < 3 or polygon.shape[1] != 2:
+        raise InputError(f"area_xy: expected a (k >= 3, 2) polygon, got shape {polygon.shape}",
+                         reason="expected a polygon of at least 3 points")
+    return polygon
 
 
-def _cells(world: World, cell_m: float, area: ConvexPolygon) -> FloatArray:
+def inside_polygon(xy: FloatArray, polygon_xy: FloatArray) -> BoolArray:
+    """Whether each point (m, 2) lies inside the polygon (k, 2) (even-odd rule, any shape)."""
+    a, b = polygon_xy, np.roll(polygon_xy, -1, axis=0)
+    x, y = xy[:, 0:1], xy[:, 1:2]
+    crosses = (a[:, 1] > y) != (b[:, 1] > y)
+    dy = np.where(b[:, 1] == a[:, 1], 1.0, b[:, 1] - a[:, 1])
+    x_at = a[:, 0] + (y - a[:, 1]) * (b[:, 0] - a[:, 0]) / dy
+    inside: BoolArray = (np.sum(crosses & (x < x_at), axis=1) % 2) == 1
+    return inside
+
+
+def _cells(world: World, cell_m: float, area_xy: FloatArray) -> FloatArray:
     """Centres of the grid's cells that lie inside the area."""
     xs = np.arange(cell_m / 2.0, world.width_m, cell_m)
     ys = np.arange(cell_m / 2.0, world.height_m, cell_m)
     grid = np.array(np.meshgrid(xs, ys, indexing="ij")).reshape(2, -1).T
-    inside: FloatArray = grid[area.contains(grid)] if grid.size else np.zeros((0, 2))
+    inside: FloatArray = grid[inside_polygon(grid, area_xy)] if grid.size else np.zeros((0, 2))
     return inside
 
 
 def _sweep_points(
-    world: World, cell_m: float, seen_m: float, area: ConvexPolygon
+    world: World, cell_m: float, seen_m: float, area_xy: FloatArray
 ) -> tuple[FloatArray, IntArray]:
     """Lawn-mower points inside the area: north-south lanes as wide as the sure view (2 seen_m),
     one point per cell along each lane, alternating direction; and each point's lane."""
@@ -325,7 +349,7 @@ def _sweep_points(
     for lane, x in enumerate(lanes_x):
         along = ys if lane % 2 == 0 else ys[::-1]
         lane_points = np.column_stack([np.full(along.size, x), along])
-        keep = lane_points[area.contains(lane_points)]
+        keep = lane_points[inside_polygon(lane_points, area_xy)]
         points.append(keep)
         lanes += [lane] * keep.shape[0]
     xy = np.concatenate(points) if points else np.zeros((0, 2))

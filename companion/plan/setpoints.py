@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 from companion.config import SafetyConfig
 from companion.geo import LocalNed
 from companion.plan.gate import GateLimits, Setpoint
-from companion.plan.planners import LawnMower, Planner, move_towards
+from companion.plan.planners import LawnMower, Planner, PlanProgress, move_towards
 from companion.plan.world import World
 from companion.sat.mixture import Mixture
 from companion.sat.tracks import Tracks
@@ -37,15 +37,16 @@ class Carrot:
     """The point the vehicle follows (None: not placed yet) and the planner's progress."""
 
     xy_m: FloatArray | None = None
-    progress: int = 0
+    progress: PlanProgress = 0
 
     def advance(self, planner: Planner, vehicle_xy_m: FloatArray, mixture: Mixture,
                 tracks: Tracks, world: World, speed_m_s: float,
-                dt_s: float) -> tuple[FloatArray, Carrot]:
-        """The search-frame target now and the carrot moved on by speed_m_s * dt_s."""
+                dt_s: float, t_s: float = 0.0) -> tuple[FloatArray, Carrot]:
+        """The search-frame target now and the carrot moved on by speed_m_s * dt_s; t_s is the
+        estimator's time."""
         carrot = vehicle_xy_m if self.xy_m is None else self.xy_m
         waypoint, progress = planner.next_waypoint(carrot, mixture, tracks, world,
-                                                   self.progress)
+                                                   self.progress, t_s)
         if waypoint is None:
             return carrot, Carrot(self.xy_m, progress)
         carrot = move_towards(carrot, waypoint, speed_m_s * dt_s)
