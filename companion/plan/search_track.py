@@ -7,8 +7,9 @@ cells, each holding the expected number of targets on it that no scan has found 
 cell enters the sensor's sure view, or stays in it for another `look_s` seconds). The goals are
 
 - search: the mixture's components that support no confirmed track (the PHD mass no detection
-  has explained), valued by their weight, and the next point of a sweep over unseen ground, valued
-  by the unseen mass in its lane;
+  has explained), valued by their weight, and the next point of a sweep over unseen ground (lanes
+  as wide as the sure view, in lawn-mower order, skipping what was seen), valued by the unseen
+  mass it would look at;
 - track: each confirmed track, valued by the probability that its target has moved farther than
   half the view from the track's mean (from its honest covariance, grown with the time unseen),
   times the probability that a look at its mean still sees it, times its existence;
@@ -54,7 +55,7 @@ class SearchTrackParams:
     view_radius_m: float  # radius of the disk around the robot that the sensor surely sees
     p_detect: float = 0.98  # p(D|F) inside that disk
     unseen_targets: float = 1.0  # expected targets beside the initial belief, spread evenly
-    stop_below: float = 0.5  # the search ends when fewer targets than this are left to find
+    stop_below: float = 0.05  # the search ends when fewer targets than this are left to find
     motion: TargetMotion = field(default_factory=lambda: TargetMotion(speed_m_s=0.0))
     area_xy: FloatArray | None = None  # (k, 2) search-area polygon; None: the world
     goals: int = 5  # goals ordered in one plan (all orders are tried: keep it small)
@@ -115,7 +116,6 @@ class SearchTrack:
     sweep_xy: FloatArray  # (s, 2) sweep points in lawn-mower order
     sweep_cells: tuple[IntArray, ...]  # cells each sweep point looks at
     lane_of_sweep: IntArray  # (s,) lane of each sweep point
-    lane_cells: tuple[IntArray, ...]  # cells the sweep points of each lane look at
     horizon_m: float
     area_xy: FloatArray  # (k, 2) the search area's polygon
 
@@ -215,12 +215,11 @@ class SearchTrack:
     def _sweep_goal(
         self, memory: SearchProgress, unseen: FloatArray
     ) -> tuple[FloatArray, float] | None:
-        """The first sweep point with a cell not yet looked at, valued by the unseen mass left in
-        its lane; None once every cell has been looked at."""
+        """The first sweep point with a cell not yet looked at, valued by the unseen mass of the
+        cells it would look at; None once every cell has been looked at."""
         for i, cells in enumerate(self.sweep_cells):
             if cells.size and (memory.looks[cells] == 0).any():
-                lane = self.lane_cells[int(self.lane_of_sweep[i])]
-                return self.sweep_xy[i], float(unseen[lane][memory.looks[lane] == 0].sum())
+                return self.sweep_xy[i], float(unseen[cells][memory.looks[cells] == 0].sum())
         return None
 
     def _track_goals(self, tracks: Tracks, t_s: float) -> tuple[FloatArray, FloatArray]:
@@ -291,15 +290,9 @@ def make_search_track(world: World, params: SearchTrackParams) -> SearchTrack:
     sweep_cells = tuple(
         np.flatnonzero(np.hypot(*(cells_xy - p).T) <= seen_m).astype(np.int64) for p in sweep_xy
     )
-    lane_cells = tuple(
-        np.unique(np.concatenate(
-            [np.zeros(0, dtype=np.int64)]
-            + [c for c, k in zip(sweep_cells, lanes, strict=True) if k == lane]))
-        for lane in range(int(lanes.max()) + 1 if lanes.size else 0)
-    )
     horizon_m = params.horizon_m or max(world.width_m, world.height_m)
-    return SearchTrack(params, cells_xy, cell_m, seen_m, sweep_xy, sweep_cells, lanes, lane_cells,
-                       horizon_m, area_xy)
+    return SearchTrack(params, cells_xy, cell_m, seen_m, sweep_xy, sweep_cells, lanes, horizon_m,
+                       area_xy)
 
 
 def _area_xy(world: World, area_xy: FloatArray | None) -> FloatArray:
