@@ -2,14 +2,16 @@
 
 Pure: a function of (robot position, mixture, tracks, world, progress, time) -> (waypoint,
 progress), with no clock, no randomness and no I/O. The search area is covered by a grid of
-cells, each holding the expected number of targets on it that no scan has found yet: at the start
-`unseen_targets` spread evenly over the area, times (1 - p_D) for each look at the cell (a look: the
-cell enters the sensor's sure view, or stays in it for another `look_s` seconds). The goals are
+cells, each holding the expected number of targets on it that no scan has found yet:
+`unseen_targets` spread evenly over the area (or, if more, the density of the confirmed tracks
+beyond the initial belief's count over the ground seen, times the area), times (1 - p_D) for each
+look at the cell (a look: the cell enters the sensor's sure view, or stays in it for another
+`look_s` seconds). The goals are
 
 - search: the mixture's components that support no confirmed track (the PHD mass no detection
-  has explained), valued by their weight, and the next point of a sweep over unseen ground (lanes
-  as wide as the sure view, in lawn-mower order, skipping what was seen), valued by the unseen
-  mass it would look at;
+  has explained), valued by their weight, and the next points of a sweep over unseen ground (lanes
+  as wide as the sure view, in lawn-mower order, skipping what was seen), each valued by the
+  unseen mass it would look at;
 - track: each confirmed track, valued by the probability that its target has moved farther than
   half the view from the track's mean (from its honest covariance, grown with the time unseen),
   times the probability that a look at its mean still sees it, times its existence;
@@ -45,6 +47,8 @@ IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
 REACHED_M = 1.0  # a goal this close is reached: plan again
+MIN_SEEN_SHARE = 0.25  # the density of found targets is trusted once this much was seen
+HALF_VALUE_LOOKS = 12.0  # a minute in view at look_s = 5 s halves a component's value
 MAX_CELLS = 2500  # the grid is made coarser than view/2 if the area would need more cells
 
 
@@ -103,6 +107,7 @@ class SearchProgress:
     searched: bool  # the stop rule has held once: the search is over
     goal_xy: FloatArray | None = None  # the goal flown to, kept until reached or worth less
     goal_value: float = 0.0  # its value when chosen
+    believed: float = 0.0  # targets the mixture expected at the first call (its sum of weights)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -119,11 +124,13 @@ class SearchTrack:
     horizon_m: float
     area_xy: FloatArray  # (k, 2) the search area's polygon
 
-    def start(self) -> SearchProgress:
-        """The memory before the first call: nothing looked at, everything left to find."""
+    def start(self, believed: float = 0.0) -> SearchProgress:
+        """The memory before the first call (the initial belief expecting `believed` targets):
+        nothing looked at, everything left to find."""
         n = self.cells_xy.shape[0]
         return SearchProgress(np.zeros(n, dtype=np.int64), np.zeros(n, dtype=bool),
-                              np.full(n, -math.inf), -math.inf, math.inf, False)
+                              np.full(n, -math.inf), -math.inf, math.inf, False,
+                              believed=believed)
 
     def next_waypoint(
         self, robot_xy: FloatArray, mixture: Mixture, tracks: Tracks, world: World,
@@ -131,20 +138,19 @@ class SearchTrack:
     ) -> tuple[FloatArray | None, SearchProgress]:
         """The first goal of the best plan from here (None: nothing worth flying to) and the
         memory after looking from robot_xy at t_s; progress 0 starts afresh."""
-        memory = self.start() if isinstance(progress, int) else progress
+        memory = self.start(mixture.total_weight) if isinstance(progress, int) else progress
         memory = self._look(robot_xy, memory, t_s)
-        unseen = self._unseen_mass(memory)
         found = _found_ids(tracks)
+        unseen = self._unseen_mass(memory, found.size)
         comp_xy, comp_value = self._component_goals(mixture, found, memory)
         left = float(unseen.sum() + comp_value.sum())
         searched = memory.searched or left < self.params.stop_below
         memory = replace(memory, left=left, searched=searched)
         goals_xy, values = [comp_xy], [comp_value]
         if not searched:
-            sweep = self._sweep_goal(memory, unseen)
-            if sweep is not None:
-                goals_xy.append(sweep[0][None, :])
-                values.append(np.array([sweep[1]]))
+            sweep_xy, sweep_value = self._sweep_goals(memory, unseen)
+            goals_xy.append(sweep_xy)
+            values.append(sweep_value)
         track_xy, track_value = self._track_goals(tracks, t_s)
         goals_xy.append(track_xy)
         values.append(track_value)
@@ -166,11 +172,14 @@ class SearchTrack:
         looked_t_s = np.where(look, t_s, memory.looked_t_s)
         return replace(memory, looks=looks, in_view=in_view, looked_t_s=looked_t_s, t_s=t_s)
 
-    def _unseen_mass(self, memory: SearchProgress) -> FloatArray:
-        """(n,) expected targets on each cell that no look has found."""
+    def _unseen_mass(self, memory: SearchProgress, found: int) -> FloatArray:
+        """(n,) expected targets on each cell that no look has found: unseen_targets spread evenly,
+        or more where the targets found so far on the ground seen say the area holds more."""
         n = self.cells_xy.shape[0]
-        per_cell = self.params.unseen_targets / max(n, 1)
-        miss: FloatArray = per_cell * (1.0 - self.params.p_detect) ** memory.looks
+        seen = float((memory.looks > 0).mean()) if n else 1.0
+        beyond = max(found - memory.believed, 0.0)  # found beyond what the first belief held
+        total = max(self.params.unseen_targets, beyond / max(seen, MIN_SEEN_SHARE))
+        miss: FloatArray = total / max(n, 1) * (1.0 - self.params.p_detect) ** memory.looks
         return miss
 
     def _cell_of(self, xy: FloatArray) -> IntArray:
@@ -185,14 +194,15 @@ class SearchTrack:
         self, mixture: Mixture, found: IntArray, memory: SearchProgress
     ) -> tuple[FloatArray, FloatArray]:
         """Means and values of the components that support no confirmed track: their weight,
-        halved for each look after the first already spent on the cell under them."""
+        halved for every HALF_VALUE_LOOKS looks already spent on the cell under them (so that a
+        component the filter does not explain cannot hold the robot for ever)."""
         unfound = ~np.isin(mixture.labels, found)
         xy = mixture.means[unfound, :2]
         weights = mixture.weights[unfound]
         inside = self._inside(xy)
         xy, weights = xy[inside], weights[inside]
         looks = memory.looks[self._cell_of(xy)] if self.cells_xy.shape[0] else np.zeros(0)
-        value: FloatArray = weights * 0.5 ** np.maximum(looks - 1, 0)
+        value: FloatArray = weights * 0.5 ** (np.maximum(looks - 1, 0) / HALF_VALUE_LOOKS)
         return xy, value
 
     def _into_area(self, xy: FloatArray) -> FloatArray:
@@ -212,15 +222,23 @@ class SearchTrack:
         near: BoolArray = d2.min(axis=1) <= 2.0 * self.cell_m**2
         return near
 
-    def _sweep_goal(
+    def _sweep_goals(
         self, memory: SearchProgress, unseen: FloatArray
-    ) -> tuple[FloatArray, float] | None:
-        """The first sweep point with a cell not yet looked at, valued by the unseen mass of the
-        cells it would look at; None once every cell has been looked at."""
+    ) -> tuple[FloatArray, FloatArray]:
+        """The next `goals` sweep points with a cell not yet looked at, in sweep order, each
+        valued by the unseen mass of the cells it would look at."""
+        xy: list[FloatArray] = []
+        value: list[float] = []
         for i, cells in enumerate(self.sweep_cells):
-            if cells.size and (memory.looks[cells] == 0).any():
-                return self.sweep_xy[i], float(unseen[cells][memory.looks[cells] == 0].sum())
-        return None
+            fresh = cells[memory.looks[cells] == 0]
+            if fresh.size:
+                xy.append(self.sweep_xy[i])
+                value.append(float(unseen[fresh].sum()))
+                if len(xy) == self.params.goals:
+                    break
+        if not xy:
+            return np.zeros((0, 2)), np.zeros(0)
+        return np.array(xy), np.array(value)
 
     def _track_goals(self, tracks: Tracks, t_s: float) -> tuple[FloatArray, FloatArray]:
         """Means and values of the confirmed tracks: existence x P(moved beyond half the view) x
