@@ -119,8 +119,9 @@ class SearchTrack:
     cell_m: float  # side of a cell
     seen_m: float  # a cell whose centre is this close to the robot is wholly in view
     sweep_xy: FloatArray  # (s, 2) sweep points in lawn-mower order
-    sweep_cells: tuple[IntArray, ...]  # cells each sweep point looks at
-    lane_of_sweep: IntArray  # (s,) lane of each sweep point
+    sweep_of_pair: IntArray  # (p,) sweep point of each (sweep point, cell it looks at) pair
+    cell_of_pair: IntArray  # (p,) cell of each pair
+    cell_at: IntArray  # (nx, ny) the cell of each square of the full grid, -1 outside the area
     horizon_m: float
     area_xy: FloatArray  # (k, 2) the search area's polygon
 
@@ -183,12 +184,18 @@ class SearchTrack:
         return miss
 
     def _cell_of(self, xy: FloatArray) -> IntArray:
-        """(m,) the nearest cell to each point."""
+        """(m,) the cell each point lies on, or the nearest cell for a point on none."""
         if xy.shape[0] == 0 or self.cells_xy.shape[0] == 0:
             return np.zeros(xy.shape[0], dtype=np.int64)
-        d2 = ((xy[:, None, :] - self.cells_xy[None, :, :]) ** 2).sum(axis=2)
-        nearest: IntArray = np.argmin(d2, axis=1)
-        return nearest
+        nx, ny = self.cell_at.shape
+        ix = np.clip(np.floor(xy[:, 0] / self.cell_m), 0, nx - 1).astype(np.int64)
+        iy = np.clip(np.floor(xy[:, 1] / self.cell_m), 0, ny - 1).astype(np.int64)
+        cell = self.cell_at[ix, iy]
+        off = np.flatnonzero(cell < 0)
+        if off.size:
+            d2 = ((xy[off, None, :] - self.cells_xy[None, :, :]) ** 2).sum(axis=2)
+            cell[off] = np.argmin(d2, axis=1)
+        return cell
 
     def _component_goals(
         self, mixture: Mixture, found: IntArray, memory: SearchProgress
@@ -218,8 +225,8 @@ class SearchTrack:
         """Whether each point is within one cell of the area's cells (a goal worth flying to)."""
         if xy.shape[0] == 0 or self.cells_xy.shape[0] == 0:
             return np.zeros(xy.shape[0], dtype=bool)
-        d2 = ((xy[:, None, :] - self.cells_xy[None, :, :]) ** 2).sum(axis=2)
-        near: BoolArray = d2.min(axis=1) <= 2.0 * self.cell_m**2
+        d2 = ((xy - self.cells_xy[self._cell_of(xy)]) ** 2).sum(axis=1)
+        near: BoolArray = d2 <= 2.0 * self.cell_m**2
         return near
 
     def _sweep_goals(
@@ -227,18 +234,14 @@ class SearchTrack:
     ) -> tuple[FloatArray, FloatArray]:
         """The next `goals` sweep points with a cell not yet looked at, in sweep order, each
         valued by the unseen mass of the cells it would look at."""
-        xy: list[FloatArray] = []
-        value: list[float] = []
-        for i, cells in enumerate(self.sweep_cells):
-            fresh = cells[memory.looks[cells] == 0]
-            if fresh.size:
-                xy.append(self.sweep_xy[i])
-                value.append(float(unseen[fresh].sum()))
-                if len(xy) == self.params.goals:
-                    break
-        if not xy:
-            return np.zeros((0, 2)), np.zeros(0)
-        return np.array(xy), np.array(value)
+        fresh = memory.looks[self.cell_of_pair] == 0
+        n = self.sweep_xy.shape[0]
+        count = np.bincount(self.sweep_of_pair[fresh], minlength=n)
+        value: FloatArray = np.bincount(
+            self.sweep_of_pair[fresh], weights=unseen[self.cell_of_pair[fresh]], minlength=n
+        ).astype(np.float64)
+        nxt = np.flatnonzero(count > 0)[: self.params.goals]
+        return self.sweep_xy[nxt], value[nxt]
 
     def _track_goals(self, tracks: Tracks, t_s: float) -> tuple[FloatArray, FloatArray]:
         """Means and values of the confirmed tracks: existence x P(moved beyond half the view) x
@@ -304,13 +307,12 @@ def make_search_track(world: World, params: SearchTrackParams) -> SearchTrack:
                  math.sqrt(world.width_m * world.height_m / MAX_CELLS))
     seen_m = max(params.view_radius_m - cell_m / math.sqrt(2.0), 0.5 * cell_m)
     cells_xy = _cells(world, cell_m, area_xy)
-    sweep_xy, lanes = _sweep_points(world, cell_m, seen_m, area_xy)
-    sweep_cells = tuple(
-        np.flatnonzero(np.hypot(*(cells_xy - p).T) <= seen_m).astype(np.int64) for p in sweep_xy
-    )
+    sweep_xy = _sweep_points(world, cell_m, seen_m, area_xy)
+    near = np.hypot(*(sweep_xy[:, None, :] - cells_xy[None, :, :]).transpose(2, 0, 1)) <= seen_m
+    sweep_of_pair, cell_of_pair = (a.astype(np.int64) for a in np.nonzero(near))
     horizon_m = params.horizon_m or max(world.width_m, world.height_m)
-    return SearchTrack(params, cells_xy, cell_m, seen_m, sweep_xy, sweep_cells, lanes, horizon_m,
-                       area_xy)
+    return SearchTrack(params, cells_xy, cell_m, seen_m, sweep_xy, sweep_of_pair, cell_of_pair,
+                       _cell_at(world, cell_m, cells_xy), horizon_m, area_xy)
 
 
 def _area_xy(world: World, area_xy: FloatArray | None) -> FloatArray:
@@ -347,24 +349,31 @@ def _cells(world: World, cell_m: float, area_xy: FloatArray) -> FloatArray:
 
 def _sweep_points(
     world: World, cell_m: float, seen_m: float, area_xy: FloatArray
-) -> tuple[FloatArray, IntArray]:
+) -> FloatArray:
     """Lawn-mower points inside the area: north-south lanes as wide as the sure view (2 seen_m),
-    one point per cell along each lane, alternating direction; and each point's lane."""
+    one point per cell along each lane, alternating direction."""
     lane_m = max(2.0 * seen_m, cell_m)
     lanes_x = np.arange(min(seen_m, world.width_m / 2.0), world.width_m, lane_m)
     if lanes_x.size and world.width_m - lanes_x[-1] > seen_m:
         lanes_x = np.append(lanes_x, world.width_m - min(seen_m, world.width_m / 2.0))
     ys = np.arange(cell_m / 2.0, world.height_m, cell_m)
-    points: list[FloatArray] = []
-    lanes: list[int] = []
+    points = [np.zeros((0, 2))]
     for lane, x in enumerate(lanes_x):
         along = ys if lane % 2 == 0 else ys[::-1]
         lane_points = np.column_stack([np.full(along.size, x), along])
-        keep = lane_points[inside_polygon(lane_points, area_xy)]
-        points.append(keep)
-        lanes += [lane] * keep.shape[0]
-    xy = np.concatenate(points) if points else np.zeros((0, 2))
-    return xy, np.asarray(lanes, dtype=np.int64)
+        points.append(lane_points[inside_polygon(lane_points, area_xy)])
+    return np.concatenate(points)
+
+
+def _cell_at(world: World, cell_m: float, cells_xy: FloatArray) -> IntArray:
+    """(nx, ny) the index of the cell on each square of the full grid, -1 where none is."""
+    nx = max(int(np.ceil(world.width_m / cell_m - 1e-9)), 1)
+    ny = max(int(np.ceil(world.height_m / cell_m - 1e-9)), 1)
+    table = np.full((nx, ny), -1, dtype=np.int64)
+    ix = np.clip(np.floor(cells_xy[:, 0] / cell_m), 0, nx - 1).astype(np.int64)
+    iy = np.clip(np.floor(cells_xy[:, 1] / cell_m), 0, ny - 1).astype(np.int64)
+    table[ix, iy] = np.arange(cells_xy.shape[0])
+    return table
 
 
 def inscribed_radius_m(polygon_xy: FloatArray) -> float:
