@@ -43,11 +43,12 @@ from companion.notify import Notifier
 from companion.pipeline import Pipeline, StepRecord, camera_model
 from companion.plan.gate import GateAction, GateLimits, Setpoint, gate
 from companion.plan.planners import LawnMower, Planner, make_planner
-from companion.plan.search_track import SearchTrackParams, inscribed_radius_m
+from companion.plan.search_track import SearchTrackParams
 from companion.plan.setpoints import (
     Carrot,
     gate_limits,
     hold_setpoint,
+    search_params,
     search_setpoint,
     vehicle_xy,
 )
@@ -57,7 +58,6 @@ from companion.record.rotation import make_room
 from companion.record.tlog import TlogWriter
 from companion.report import TrackRecord, confirmed_tracks
 from companion.run_folder import RunFolder
-from companion.sim.footprint import camera_footprint_xy
 from companion.vehicle.events import UNKNOWN_PREFIX
 from companion.vehicle.mavsdk_link import MavsdkLink, VehicleError
 from companion.vehicle.modes import mission_mode
@@ -152,16 +152,10 @@ class Service:
                             self._search_params())
 
     def _search_params(self) -> SearchTrackParams:
-        """What the search-and-track planner knows: the disk inside the level camera's footprint
-        at the search altitude, p(D|F), the targets' motion, the area and its stop rule."""
-        s, pipeline = self.config.search, self.pipeline
-        footprint = camera_footprint_xy(pipeline.camera, s.altitude_m, s.heading_deg)
-        view_m = max(inscribed_radius_m(footprint) - self.config.estimator.footprint_margin_m,
-                     0.5)
-        return SearchTrackParams(
-            view_radius_m=view_m, p_detect=pipeline.params.p_detect,
-            unseen_targets=float(s.expected_targets or 1), stop_below=s.stop_when_left,
-            motion=pipeline.params.tracks.motion, area_xy=pipeline.frame.area_xy_m)
+        """What the search-and-track planner knows in this flight (setpoints.search_params)."""
+        p = self.pipeline
+        return search_params(self.config.search, self.config.estimator.footprint_margin_m,
+                             p.camera, p.params, p.frame.area_xy_m)
 
     # -- the run -----------------------------------------------------------------------------
 

@@ -9,19 +9,22 @@ look at the cell (a look: the cell enters the sensor's sure view, or stays in it
 `look_s` seconds). The goals are
 
 - search: the mixture's components that support no confirmed track (the PHD mass no detection
-  has explained), valued by their weight, and the next points of a sweep over unseen ground (lanes
-  as wide as the sure view, in lawn-mower order, skipping what was seen), each valued by the
-  unseen mass it would look at;
+  has explained), valued by their weight, and the nearest point of a sweep over unseen ground
+  (points along lanes as wide as the sure view; the nearest next makes a lawn mower that skips
+  what was seen and resumes where the robot is), valued by the unseen mass that the next few
+  sweep points would look at;
 - track: each confirmed track, valued by the probability that its target has moved farther than
   half the view from the track's mean (from its honest covariance, grown with the time unseen),
   times the probability that a look at its mean still sees it, times its existence;
 
 all in one unit, expected targets. The plan is the order of the best `goals` goals that maximises
 the sum of value x exp(-distance flown to it / horizon) (every order tried), and the waypoint is
-its first goal, kept until it is reached or worth less than half what it was when chosen (so that
-the robot does not dither between two goals whose values change as it flies). The search ends
-(finished) once the expected number of targets left to find (the cells' mass plus the unconfirmed
-components' weights) is below `stop_below`; the planner then keeps revisiting tracks.
+its first goal; when that is the sweep's next point, the robot goes on with the sweep (replanned
+at every call, as a lawn mower that skips what was seen). Another goal is flown to until it is
+reached, gone, or worth less than half what it was planned at, unless a goal worth much more turns
+up, so that the robot neither dithers between goals whose values change as it flies nor nibbles
+at small near goals for ever. Components in the sure view now are not goals: the sensor is
+looking at them.
 """
 
 from __future__ import annotations
@@ -47,8 +50,11 @@ IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
 REACHED_M = 1.0  # a goal this close is reached: plan again
+COMMIT_GOALS = 1  # goals of a tour flown before the next plan (receding horizon)
+INTERRUPT_VALUE = 0.3  # a new goal worth this much, and INTERRUPT_RATIO times the most the
+INTERRUPT_RATIO = 3.0  # tour being flown holds, makes the planner plan a new tour at once
 MIN_SEEN_SHARE = 0.25  # the density of found targets is trusted once this much was seen
-HALF_VALUE_LOOKS = 12.0  # a minute in view at look_s = 5 s halves a component's value
+HALF_VALUE_LOOKS = 12.0  # a minute in view at look_s = 5 s halves a whole target's value
 MAX_CELLS = 2500  # the grid is made coarser than view/2 if the area would need more cells
 
 
@@ -105,8 +111,9 @@ class SearchProgress:
     t_s: float  # time of the last call
     left: float  # expected targets left to find after the last call
     searched: bool  # the stop rule has held once: the search is over
-    goal_xy: FloatArray | None = None  # the goal flown to, kept until reached or worth less
-    goal_value: float = 0.0  # its value when chosen
+    goal_xy: FloatArray | None = None  # the goal flown to now: the tour's first
+    tour_xy: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))  # (m, 2) goals left
+    tour_values: FloatArray = field(default_factory=lambda: np.zeros(0))  # their planned values
     believed: float = 0.0  # targets the mixture expected at the first call (its sum of weights)
 
 
@@ -145,17 +152,17 @@ class SearchTrack:
         unseen = self._unseen_mass(memory, found.size)
         comp_xy, comp_value = self._component_goals(mixture, found, memory)
         left = float(unseen.sum() + comp_value.sum())
+        # What the sensor surely sees now is being looked at: no need to fly to it.
+        away = np.hypot(*(comp_xy - robot_xy).T) > self.seen_m
+        comp_xy, comp_value = comp_xy[away], comp_value[away]
         searched = memory.searched or left < self.params.stop_below
         memory = replace(memory, left=left, searched=searched)
-        goals_xy, values = [comp_xy], [comp_value]
-        if not searched:
-            sweep_xy, sweep_value = self._sweep_goals(memory, unseen)
-            goals_xy.append(sweep_xy)
-            values.append(sweep_value)
+        sweep_xy, sweep_value = (np.zeros((0, 2)), np.zeros(0)) if searched else (
+            self._sweep_goals(robot_xy, memory, unseen))
         track_xy, track_value = self._track_goals(tracks, t_s)
-        goals_xy.append(track_xy)
-        values.append(track_value)
-        memory = self._choose(robot_xy, np.concatenate(goals_xy), np.concatenate(values), memory)
+        memory = self._choose(robot_xy, np.vstack([comp_xy, track_xy]),
+                              np.concatenate([comp_value, track_value]), sweep_xy, sweep_value,
+                              memory)
         waypoint = memory.goal_xy
         return (None if waypoint is None else world.clip(waypoint)), memory
 
@@ -201,15 +208,17 @@ class SearchTrack:
         self, mixture: Mixture, found: IntArray, memory: SearchProgress
     ) -> tuple[FloatArray, FloatArray]:
         """Means and values of the components that support no confirmed track: their weight,
-        halved for every HALF_VALUE_LOOKS looks already spent on the cell under them (so that a
-        component the filter does not explain cannot hold the robot for ever)."""
+        halved for every HALF_VALUE_LOOKS x weight (at most 1) looks already spent on the cell
+        under them, so that a component the filter does not explain cannot hold the robot, and a
+        faint one holds it least."""
         unfound = ~np.isin(mixture.labels, found)
         xy = mixture.means[unfound, :2]
         weights = mixture.weights[unfound]
         inside = self._inside(xy)
         xy, weights = xy[inside], weights[inside]
         looks = memory.looks[self._cell_of(xy)] if self.cells_xy.shape[0] else np.zeros(0)
-        value: FloatArray = weights * 0.5 ** (np.maximum(looks - 1, 0) / HALF_VALUE_LOOKS)
+        patience = HALF_VALUE_LOOKS * np.clip(weights, 0.05, 1.0)
+        value: FloatArray = weights * 0.5 ** (np.maximum(looks - 1, 0) / patience)
         return xy, value
 
     def _into_area(self, xy: FloatArray) -> FloatArray:
@@ -230,18 +239,23 @@ class SearchTrack:
         return near
 
     def _sweep_goals(
-        self, memory: SearchProgress, unseen: FloatArray
+        self, robot_xy: FloatArray, memory: SearchProgress, unseen: FloatArray
     ) -> tuple[FloatArray, FloatArray]:
-        """The next `goals` sweep points with a cell not yet looked at, in sweep order, each
-        valued by the unseen mass of the cells it would look at."""
+        """The nearest sweep point with a cell not yet looked at (the first in lawn-mower order
+        among equally near ones), valued by the unseen mass that it and the `goals` - 1 next
+        nearest such points would look at (what going on with the sweep finds)."""
         fresh = memory.looks[self.cell_of_pair] == 0
         n = self.sweep_xy.shape[0]
         count = np.bincount(self.sweep_of_pair[fresh], minlength=n)
         value: FloatArray = np.bincount(
             self.sweep_of_pair[fresh], weights=unseen[self.cell_of_pair[fresh]], minlength=n
         ).astype(np.float64)
-        nxt = np.flatnonzero(count > 0)[: self.params.goals]
-        return self.sweep_xy[nxt], value[nxt]
+        fresh_points = np.flatnonzero(count > 0)
+        if fresh_points.size == 0:
+            return np.zeros((0, 2)), np.zeros(0)
+        dist = np.hypot(*(self.sweep_xy[fresh_points] - robot_xy).T)
+        nxt = fresh_points[np.argsort(dist, kind="stable")[: self.params.goals]]
+        return self.sweep_xy[nxt[:1]], np.array([float(value[nxt].sum())])
 
     def _track_goals(self, tracks: Tracks, t_s: float) -> tuple[FloatArray, FloatArray]:
         """Means and values of the confirmed tracks: existence x P(moved beyond half the view) x
@@ -258,39 +272,71 @@ class SearchTrack:
         return tracks.means[conf, :2], value
 
     def _choose(self, robot_xy: FloatArray, goals_xy: FloatArray, values: FloatArray,
+                sweep_xy: FloatArray, sweep_value: FloatArray,
                 memory: SearchProgress) -> SearchProgress:
-        """The memory with the goal to fly to: the one flown to until it is reached or worth less
-        than half its value when chosen (following it if it moves), else a new plan's first."""
+        """The memory with the goal to fly to: the one being flown to, unless it is done or a goal
+        worth much more has turned up; else the first of the best order over the goals and the
+        sweep's next point."""
         worth = values > 1e-6
         goals_xy, values = self._into_area(goals_xy[worth]), values[worth]
-        if memory.goal_xy is not None and values.size:
-            dist = np.hypot(*(goals_xy - memory.goal_xy).T)
-            same = dist <= self.cell_m
-            if same.any() and np.hypot(*(memory.goal_xy - robot_xy)) > REACHED_M:
-                best = int(np.argmax(np.where(same, values, -1.0)))
-                if values[best] >= 0.5 * memory.goal_value:
-                    return replace(memory, goal_xy=goals_xy[best])
-        if values.size == 0:
-            return replace(memory, goal_xy=None, goal_value=0.0)
-        near = values * np.exp(-np.hypot(*(goals_xy - robot_xy).T) / self.horizon_m)
+        tour_xy, tour_values = self._follow(robot_xy, goals_xy, values, memory)
+        stale = values.size and values.max() > max(INTERRUPT_VALUE,
+                                                   INTERRUPT_RATIO * tour_values.max(initial=0.0))
+        if tour_xy.shape[0] and not stale:
+            return replace(memory, goal_xy=tour_xy[0], tour_xy=tour_xy, tour_values=tour_values)
+        cand_xy = np.vstack([goals_xy, sweep_xy])
+        cand_values = np.concatenate([values, sweep_value])
+        if cand_values.size == 0:
+            return replace(memory, goal_xy=None, tour_xy=np.zeros((0, 2)), tour_values=np.zeros(0))
+        near = cand_values * np.exp(-np.hypot(*(cand_xy - robot_xy).T) / self.horizon_m)
         top = np.argsort(-near, kind="stable")[: self.params.goals]
-        first = int(top[best_order(robot_xy, goals_xy[top], values[top], self.horizon_m)])
-        return replace(memory, goal_xy=goals_xy[first], goal_value=float(values[first]))
+        order = top[best_order(robot_xy, cand_xy[top], cand_values[top], self.horizon_m)]
+        if order[0] >= values.size:  # go on with the sweep, replanned at every call
+            return replace(memory, goal_xy=cand_xy[order[0]], tour_xy=np.zeros((0, 2)),
+                           tour_values=np.zeros(0))
+        keep = order[:COMMIT_GOALS]
+        return replace(memory, goal_xy=cand_xy[keep[0]], tour_xy=cand_xy[keep],
+                       tour_values=cand_values[keep])
+
+    def _follow(self, robot_xy: FloatArray, goals_xy: FloatArray, values: FloatArray,
+                memory: SearchProgress) -> tuple[FloatArray, FloatArray]:
+        """The rest of the tour being flown: each goal moved to the candidate within a cell of it
+        (so that it follows a moving track), and dropped once gone, worth less than half its
+        planned value, or reached (the first)."""
+        keep_xy: list[FloatArray] = []
+        keep_values: list[float] = []
+        for xy, planned in zip(memory.tour_xy, memory.tour_values, strict=True):
+            if values.size == 0:
+                break
+            same = np.hypot(*(goals_xy - xy).T) <= self.cell_m
+            if not same.any():
+                continue
+            best = int(np.argmax(np.where(same, values, -1.0)))
+            reached = np.hypot(*(goals_xy[best] - robot_xy)) <= REACHED_M
+            if values[best] < 0.5 * planned or (not keep_xy and reached):
+                continue
+            keep_xy.append(goals_xy[best])
+            keep_values.append(float(planned))
+        if not keep_xy:
+            return np.zeros((0, 2)), np.zeros(0)
+        return np.array(keep_xy), np.array(keep_values)
 
 
 def best_order(robot_xy: FloatArray, goals_xy: FloatArray, values: FloatArray,
-               horizon_m: float) -> int:
-    """Index of the goal to visit first in the order maximising sum(value exp(-flown/horizon))."""
+               horizon_m: float) -> IntArray:
+    """The order of the goals (indices) maximising sum(value exp(-distance flown / horizon)),
+    every order tried."""
     k = goals_xy.shape[0]
-    if k == 1:
-        return 0
+    if k <= 1:
+        return np.arange(k, dtype=np.int64)
     orders = np.array(list(itertools.permutations(range(k))), dtype=np.int64)  # (k!, k)
     points = np.vstack([robot_xy[None, :], goals_xy])
     hop = np.hypot(*(points[:, None, :] - points[None, :, :]).transpose(2, 0, 1))
     path = np.column_stack([np.zeros(len(orders), dtype=np.int64), orders + 1])
     flown = np.cumsum(hop[path[:, :-1], path[:, 1:]], axis=1)
     score = (values[orders] * np.exp(-flown / horizon_m)).sum(axis=1)
-    return int(orders[int(np.argmax(score)), 0])
+    best: IntArray = orders[int(np.argmax(score))]
+    return best
 
 
 def _found_ids(tracks: Tracks) -> IntArray:

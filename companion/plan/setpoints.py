@@ -14,19 +14,23 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.config import SafetyConfig
+from companion.config import SafetyConfig, SearchConfig
 from companion.geo import LocalNed
 from companion.plan.gate import GateLimits, Setpoint
 from companion.plan.planners import LawnMower, Planner, PlanProgress, move_towards
+from companion.plan.search_track import SearchTrackParams, inscribed_radius_m
 from companion.plan.world import World
+from companion.sat.filter import SatParams
 from companion.sat.mixture import Mixture
 from companion.sat.tracks import Tracks
+from companion.sim.footprint import camera_footprint_xy
+from companion.vision.camera import CameraModel
 
 if TYPE_CHECKING:
     from companion.pipeline import SearchFrame
 
-__all__ = ["REACHED_M", "Carrot", "gate_limits", "hold_setpoint", "search_setpoint",
-           "tilt_cos", "vehicle_xy"]
+__all__ = ["REACHED_M", "Carrot", "gate_limits", "hold_setpoint", "search_params",
+           "search_setpoint", "tilt_cos", "vehicle_xy"]
 
 FloatArray = NDArray[np.float64]
 REACHED_M = 1.5  # the vehicle is this close to a waypoint: the planner moves on
@@ -89,3 +93,16 @@ def search_setpoint(frame: SearchFrame, origin: LocalNed, target_xy_m: FloatArra
     lat, lon = frame.to_latlon(target_xy_m)[0]
     north, east, down = origin.geodetic_to_ned(lat, lon, alt_amsl_m)
     return Setpoint(float(north), float(east), float(down), yaw_deg)
+
+
+def search_params(search: SearchConfig, margin_m: float, camera: CameraModel, params: SatParams,
+                  area_xy_m: FloatArray) -> SearchTrackParams:
+    """What the search-and-track planner knows in flight: the disk inside the level camera's
+    footprint at the search altitude (less the footprint margin), p(D|F), the targets' motion,
+    the search area (search frame) and the configured stop rule."""
+    footprint = camera_footprint_xy(camera, search.altitude_m, search.heading_deg)
+    view_m = max(inscribed_radius_m(footprint) - margin_m, 0.5)
+    return SearchTrackParams(
+        view_radius_m=view_m, p_detect=params.p_detect,
+        unseen_targets=float(search.expected_targets or 1), stop_below=search.stop_when_left,
+        motion=params.tracks.motion, area_xy=area_xy_m)
