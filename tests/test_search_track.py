@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
-from companion.errors import InputError
+from companion.config import parse_config
+from companion.errors import ConfigError, InputError
+from companion.pipeline import SearchFrame
 from companion.plan.planners import PlannerKind, make_planner, move_towards
 from companion.plan.search_track import (
     SearchProgress,
@@ -20,9 +23,17 @@ from companion.plan.search_track import (
     inside_polygon,
     make_search_track,
 )
+from companion.plan.setpoints import Carrot
+from companion.plan.setpoints import search_params as setpoint_search_params
 from companion.plan.world import World
 from companion.sat.mixture import Mixture, make_mixture
+from companion.sat.params import sat_params
 from companion.sat.tracks import Tracks
+from companion.scenario_lookup import resolve_scenario
+from companion.sim.battery import family_scenario
+from companion.sim.run import search_params, simulate
+from companion.sim.scenario import load_scenario, parse_scenario, scenario_to_dict
+from companion.vision.camera import CameraModel
 
 WORLD = World(150.0, 150.0)
 NO_TRACKS = Tracks.empty(2, 4)
@@ -189,3 +200,86 @@ def test_a_replan_takes_under_20_ms() -> None:
         _, progress = planner.next_waypoint(robot, mix, NO_TRACKS, WORLD, progress, float(k))
         times.append(time.perf_counter() - started)
     assert float(np.median(times)) < 0.020
+
+
+# -- where the planner is configured and flown -------------------------------------------------
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def _paper(**robot: Any) -> dict[str, Any]:
+    """The paper's exact-prior scenario as data, with [robot] overrides."""
+    data = scenario_to_dict(load_scenario(resolve_scenario("paper-lawnmower-exact-c10")))
+    data["robot"] = {**data["robot"], **robot}
+    return data
+
+
+def test_a_scenario_selects_it_and_its_keys_are_checked() -> None:
+    s = parse_scenario(_paper(planner="search-track", stop_when_left=0.2, unseen_targets=3.0))
+    assert s.robot.planner == PlannerKind.SEARCH_TRACK
+    params = search_params(s)
+    assert (params.view_radius_m, params.stop_below, params.unseen_targets) == (25.0, 0.2, 3.0)
+    assert parse_scenario(_paper()).robot.stop_when_left == 0.05  # the documented default
+    for key, bad in (("stop_when_left", -1.0), ("unseen_targets", "many")):
+        with pytest.raises(ConfigError, match=rf"robot\.{key}"):
+            parse_scenario(_paper(**{key: bad}))
+
+
+def test_a_short_simulated_run_flies_it_with_a_camera_footprint() -> None:
+    s = load_scenario(REPO / "sitl" / "scenarios" / "walkers-6-targets.toml")
+    assert s.robot.planner == PlannerKind.SEARCH_TRACK and s.sensor.fov == "camera"
+    # The disk inside the 1280x720, 90-degree camera's footprint at 15 m (30 m x 17 m).
+    assert search_params(s).view_radius_m == pytest.approx(15.0 * 720 / 1280, rel=1e-3)
+    result = simulate(replace(s, steps=120))
+    assert result.summary()["steps"] == 120
+    inside = (result.robot_xy >= 0.0) & (result.robot_xy <= np.array(s.world.size_m))
+    assert inside.all()
+    step_m = np.hypot(*np.diff(result.robot_xy, axis=0).T)
+    assert step_m.max() <= s.robot.speed_m_s * s.dt_s + 1e-9 and step_m.sum() > 100.0
+
+
+def test_the_service_configuration_selects_it_and_checks_its_stop_rule() -> None:
+    area = [[47.3977420, 8.5455940], [47.3977420, 8.5459914], [47.3979579, 8.5459914],
+            [47.3979579, 8.5455940]]
+    base: dict[str, Any] = {"camera": {"source": "0"},
+                            "search": {"area": area, "planner": "search-track"}}
+    config = parse_config(base)
+    assert config.search.planner == PlannerKind.SEARCH_TRACK
+    assert config.search.stop_when_left == 0.05
+    with pytest.raises(ConfigError, match=r"search\.stop_when_left"):
+        parse_config({**base, "search": {**base["search"], "stop_when_left": -0.1}})
+
+
+def test_in_flight_it_sees_the_camera_footprint_and_its_setpoints_stay_in_the_area() -> None:
+    area = [[47.3977420, 8.5455940], [47.3977420, 8.5459914], [47.3979579, 8.5459914],
+            [47.3979579, 8.5455940]]
+    config = parse_config({"camera": {"source": "0", "hfov_deg": 90.0, "width_px": 1280,
+                                      "height_px": 720},
+                           "search": {"area": area, "planner": "search-track",
+                                      "altitude_m": 15.0, "expected_targets": 4}})
+    camera = CameraModel.from_hfov(90.0, 1280, 720)
+    frame = SearchFrame.from_config(config.search)
+    sat = sat_params(config.filter, 0.95, 0.1, 0.5)
+    params = setpoint_search_params(config.search, 0.5, camera, sat, frame.area_xy_m)
+    assert params.view_radius_m == pytest.approx(15.0 * 720 / 1280 - 0.5, rel=1e-3)
+    assert params.unseen_targets == 4.0
+    planner = make_planner(PlannerKind.SEARCH_TRACK, frame.world, np.zeros(2), 8.0, 1, params)
+    carrot, vehicle = Carrot(), np.array([1.0, 1.0])
+    speed_m_s, dt_s = config.search.speed_m_s, 0.05
+    previous = vehicle
+    grow = 1e-6 * np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])  # rounding
+    for k in range(4000):
+        target, carrot = carrot.advance(planner, vehicle, Mixture.empty(), NO_TRACKS,
+                                        frame.world, speed_m_s, dt_s, k * dt_s)
+        assert inside_polygon(target[None, :], frame.area_xy_m + grow)[0]
+        assert np.hypot(*(target - previous)) <= speed_m_s * dt_s + 1e-9
+        previous = vehicle = target  # the vehicle follows its carrot
+    assert planner.finished(carrot.progress)  # the area was covered: mission.end = "covered"
+
+
+def test_the_battery_flies_it_beside_the_lawn_mower() -> None:
+    plain = family_scenario("moving-slow", 1, "defaults")
+    flown = family_scenario("moving-slow", 1, "search-track")
+    assert plain.robot.planner == PlannerKind.LAWNMOWER
+    assert flown.robot.planner == PlannerKind.SEARCH_TRACK
+    assert flown.filter == plain.filter and flown.targets == plain.targets
