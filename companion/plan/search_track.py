@@ -13,7 +13,9 @@ look at the cell (a look: the cell enters the sensor's sure view, or stays in it
   (points along lanes as wide as the sure view; the nearest next makes a lawn mower that skips
   what was seen and resumes where the robot is), valued by the unseen mass that the next few
   sweep points would look at;
-- track: each confirmed track, valued by the probability that its target has moved farther than
+- track: each confirmed track, valued (while the search lasts, at TRACK_WEIGHT_SEARCHING: re-finding
+  a counted target is worth less than finding a new one) by the probability that its target has
+  moved farther than
   half the view from the track's mean (from its honest covariance, grown with the time unseen),
   times the probability that a look at its mean still sees it, times its existence;
 
@@ -50,6 +52,8 @@ IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
 REACHED_M = 1.0  # a goal this close is reached: plan again
+TRACK_WEIGHT_SEARCHING = 0.25  # while searching, re-finding a counted target is worth this much
+# of finding a new one; once the search has ended, as much
 COMMIT_GOALS = 1  # goals of a tour flown before the next plan (receding horizon)
 INTERRUPT_VALUE = 0.3  # a new goal worth this much, and INTERRUPT_RATIO times the most the
 INTERRUPT_RATIO = 3.0  # tour being flown holds, makes the planner plan a new tour at once
@@ -160,6 +164,7 @@ class SearchTrack:
         sweep_xy, sweep_value = (np.zeros((0, 2)), np.zeros(0)) if searched else (
             self._sweep_goals(robot_xy, memory, unseen))
         track_xy, track_value = self._track_goals(tracks, t_s)
+        track_value = track_value * (TRACK_WEIGHT_SEARCHING if not searched else 1.0)
         memory = self._choose(robot_xy, np.vstack([comp_xy, track_xy]),
                               np.concatenate([comp_value, track_value]), sweep_xy, sweep_value,
                               memory)
