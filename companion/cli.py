@@ -332,7 +332,8 @@ def build_parser() -> argparse.ArgumentParser:
     battery.add_argument("--seeds", type=int, default=20, help="seeds per family and variant")
     battery.add_argument("--out", type=Path, default=Path("out/battery"), help="output directory")
     battery.add_argument("--variants", default="defaults", metavar="NAME,...",
-                         help="[filter] variants to compare (default: defaults)")
+                         help="[filter] variants to compare; search-track flies the "
+                              "search-and-track planner (default: defaults)")
     battery.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
                          help="local worker processes (default: one per core)")
     battery.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",

@@ -134,6 +134,7 @@ class SearchConfig:
     sweeps: int
     heading_deg: float
     expected_targets: int | None
+    stop_when_left: float  # search-track: the search ends below this many targets left to find
 
 
 @dataclass(frozen=True, slots=True)
@@ -300,6 +301,10 @@ SECTIONS: dict[str, tuple[Key, ...]] = {
         Key("heading_deg", _ANGLE, 0.0, "yaw held while searching"),
         Key("expected_targets", Int(ge=1), Derived("unknown"),
             "targets to confirm before mission.end = \"targets\" ends the mission"),
+        Key("stop_when_left", Float(ge=0), 0.05,
+            "search-track planner: its search ends (mission.end = \"covered\") once fewer "
+            "targets than this are expected left to find; it expects expected_targets (or 1) "
+            "spread over the area at the start"),
     ),
     "safety": (
         Key("geofence", Points(_LAT_LON), Derived("the search area"),

@@ -44,10 +44,12 @@ from companion.notify import Notifier
 from companion.pipeline import Pipeline, StepRecord, camera_model
 from companion.plan.gate import GateAction, GateLimits, Setpoint, gate
 from companion.plan.planners import LawnMower, Planner, make_planner
+from companion.plan.search_track import SearchTrackParams
 from companion.plan.setpoints import (
     Carrot,
     gate_limits,
     hold_setpoint,
+    search_params,
     search_setpoint,
     vehicle_xy,
 )
@@ -150,7 +152,14 @@ class Service:
     def _make_planner(self, start_xy: FloatArray) -> Planner:
         """The configured planner; a lawn mower's passes each end where the search started."""
         s, world = self.config.search, self.pipeline.frame.world
-        return make_planner(s.planner, world, world.clip(start_xy), s.lane_spacing_m, s.sweeps)
+        return make_planner(s.planner, world, world.clip(start_xy), s.lane_spacing_m, s.sweeps,
+                            self._search_params())
+
+    def _search_params(self) -> SearchTrackParams:
+        """What the search-and-track planner knows in this flight (setpoints.search_params)."""
+        p = self.pipeline
+        return search_params(self.config.search, self.config.estimator.footprint_margin_m,
+                             p.camera, p.params, p.frame.area_xy_m)
 
     # -- the run -----------------------------------------------------------------------------
 
@@ -446,6 +455,8 @@ class Service:
         passes = 0
         if isinstance(self._planner, LawnMower):
             passes = self._carrot.progress * self.config.search.sweeps // len(self._planner.path_xy)
+        elif self._planner is not None and self._planner.finished(self._carrot.progress):
+            passes = 1  # the search-and-track planner's own stop rule: the area is covered
         return ms.MissionInputs(
             connected=st is not None and fresh,
             health_ok=st is not None and st.position_ok,
@@ -591,7 +602,7 @@ class Service:
             self._planner = self._make_planner(vehicle_xy_m)
         target, self._carrot = self._carrot.advance(
             self._planner, vehicle_xy_m, state.mixture, state.tracks, self.pipeline.frame.world,
-            self.config.search.speed_m_s, dt_s)
+            self.config.search.speed_m_s, dt_s, state.t_s)
         return target
 
     async def _send_setpoint(self, link: MavsdkLink, dt_s: float) -> None:

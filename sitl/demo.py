@@ -63,7 +63,8 @@ def service_config(scenario: Scenario, sitl: Sitl, out_dir: Path,
     data["camera"] = {"source": sitl.camera_url, "kind": "mjpeg"}
     data["search"].update(area=_latlon(scenario, box), altitude_m=v.altitude_m,
                           speed_m_s=r.speed_m_s, lane_spacing_m=r.lane_spacing_m,
-                          sweeps=r.sweeps, planner=r.planner, heading_deg=v.heading_deg)
+                          sweeps=r.sweeps, planner=r.planner, heading_deg=v.heading_deg,
+                          stop_when_left=r.stop_when_left)
     data["safety"].update(geofence=_latlon(scenario, fence),
                           max_alt_m=max(data["safety"]["max_alt_m"], v.altitude_m + 5.0))
     data["filter"] = scenario_to_dict(scenario)["filter"]

@@ -402,7 +402,8 @@ def test_not_a_mapping() -> None:
         (_with("sensor", fov="circle"),
          'sensor.fov: must be one of "disk", "polygon", "camera", got string "circle"'),
         (_with("robot", planner=1), 'robot.planner: must be one of "lawnmower", '
-                                    '"nearest-gaussian", "largest-gaussian", got integer 1'),
+                                    '"nearest-gaussian", "largest-gaussian", "search-track", '
+                                    'got integer 1'),
         (_with("belief", kind="exactly"), 'belief.kind: must be one of "exact", "under", "over", '
                                           '"empty", "explicit", got string "exactly"'),
         (_with("filter", motion="GP"), 'filter.motion: must be one of "gp", "linear", got string '
@@ -904,7 +905,8 @@ def test_a_scenario_check_lists_every_error(
     assert lines == [
         'seed: must be an integer, got string "one"',
         "sensor.p_detect: must be in [0, 1], got 1.5",
-        "robot.wings: unknown key (known: start, speed, planner, lane_spacing, sweeps)",
+        "robot.wings: unknown key (known: start, speed, planner, lane_spacing, sweeps, "
+        "unseen_targets, stop_when_left)",
     ]
     assert companion_main(["simulate", str(bad)]) == 2
     err = capsys.readouterr().err

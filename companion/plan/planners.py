@@ -1,19 +1,23 @@
-"""The paper's planners (Section Planning): lawn mower, nearest-Gaussian and largest-Gaussian.
+"""The planners: the paper's lawn mower, nearest-Gaussian and largest-Gaussian (Section
+Planning), and the search-and-track planner (companion.plan.search_track).
 
-Each planner is a pure function of (robot position, mixture, tracks, world, progress) that returns
-the next waypoint (or None: stay) and its new progress counter; only the lawn mower uses progress.
+Each planner is a pure function of (robot position, mixture, tracks, world, progress, time) that
+returns the next waypoint (or None: stay) and its new progress. The paper's planners ignore the
+time and count progress in an int (only the lawn mower uses it); the search-and-track planner
+keeps its memory of where it has looked in a SearchProgress, and starts one from progress 0.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from companion.errors import InputError
+from companion.plan.search_track import SearchTrackParams, make_search_track
 from companion.plan.world import World
 from companion.sat.mixture import Mixture
 from companion.sat.tracks import Tracks
@@ -27,18 +31,26 @@ class PlannerKind(StrEnum):
     LAWNMOWER = "lawnmower"
     NEAREST_GAUSSIAN = "nearest-gaussian"
     LARGEST_GAUSSIAN = "largest-gaussian"
+    SEARCH_TRACK = "search-track"
+
+
+PlanProgress = Any
+"""A planner's progress: an int for the paper's planners, a SearchProgress for search-track;
+every planner starts from 0."""
 
 
 class Planner(Protocol):
-    """next waypoint = planner(robot, mixture, tracks, world, progress)."""
+    """next waypoint = planner(robot, mixture, tracks, world, progress, t_s)."""
 
     def next_waypoint(
-        self, robot_xy: FloatArray, mixture: Mixture, tracks: Tracks, world: World, progress: int
-    ) -> tuple[FloatArray | None, int]:
-        """The waypoint to fly to now (None: hold) and the planner's new progress."""
+        self, robot_xy: FloatArray, mixture: Mixture, tracks: Tracks, world: World,
+        progress: PlanProgress, t_s: float = 0.0,
+    ) -> tuple[FloatArray | None, PlanProgress]:
+        """The waypoint to fly to now (None: hold) and the planner's new progress; t_s is the
+        estimator's time."""
         ...
 
-    def finished(self, progress: int) -> bool:
+    def finished(self, progress: PlanProgress) -> bool:
         """Whether the plan has nothing left to do."""
         ...
 
@@ -74,7 +86,8 @@ class LawnMower:
     reached_m: float = 1e-6
 
     def next_waypoint(
-        self, robot_xy: FloatArray, mixture: Mixture, tracks: Tracks, world: World, progress: int
+        self, robot_xy: FloatArray, mixture: Mixture, tracks: Tracks, world: World, progress: int,
+        t_s: float = 0.0,
     ) -> tuple[FloatArray | None, int]:
         """The current waypoint, advancing past those already reached."""
         while progress < len(self.path_xy) and (
@@ -95,7 +108,8 @@ class NearestGaussian:
     """Drive to the mean of the nearest component of the mixture."""
 
     def next_waypoint(
-        self, robot_xy: FloatArray, mixture: Mixture, tracks: Tracks, world: World, progress: int
+        self, robot_xy: FloatArray, mixture: Mixture, tracks: Tracks, world: World, progress: int,
+        t_s: float = 0.0,
     ) -> tuple[FloatArray | None, int]:
         """The nearest component mean inside the world, or None for an empty mixture."""
         if mixture.size == 0:
@@ -113,7 +127,8 @@ class LargestGaussian:
     """Drive to the mean of the component with the largest covariance (largest ellipse area)."""
 
     def next_waypoint(
-        self, robot_xy: FloatArray, mixture: Mixture, tracks: Tracks, world: World, progress: int
+        self, robot_xy: FloatArray, mixture: Mixture, tracks: Tracks, world: World, progress: int,
+        t_s: float = 0.0,
     ) -> tuple[FloatArray | None, int]:
         """The mean of the component whose position covariance has the largest determinant."""
         if mixture.size == 0:
@@ -141,13 +156,19 @@ def move_towards(
 
 
 def make_planner(
-    kind: PlannerKind, world: World, start_xy: FloatArray, lane_spacing_m: float, sweeps: int
+    kind: PlannerKind, world: World, start_xy: FloatArray, lane_spacing_m: float, sweeps: int,
+    search: SearchTrackParams | None = None,
 ) -> Planner:
-    """The planner of that kind; a lawn mower's `sweeps` passes each end at start_xy."""
+    """The planner of that kind; a lawn mower's `sweeps` passes each end at start_xy; the
+    search-and-track planner needs `search` (InputError without it)."""
     if kind == PlannerKind.LAWNMOWER:
         return LawnMower(lawnmower_path(world, start_xy, lane_spacing_m, sweeps))
     if kind == PlannerKind.NEAREST_GAUSSIAN:
         return NearestGaussian()
     if kind == PlannerKind.LARGEST_GAUSSIAN:
         return LargestGaussian()
+    if kind == PlannerKind.SEARCH_TRACK:
+        if search is None:
+            raise InputError("the search-track planner needs its sensor and stop parameters")
+        return make_search_track(world, search)
     raise InputError(f"unknown planner {kind!r}")

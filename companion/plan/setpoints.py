@@ -14,19 +14,23 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.config import SafetyConfig
+from companion.config import SafetyConfig, SearchConfig
 from companion.geo import LocalNed
 from companion.plan.gate import GateLimits, Setpoint
-from companion.plan.planners import LawnMower, Planner, move_towards
+from companion.plan.planners import LawnMower, Planner, PlanProgress, move_towards
+from companion.plan.search_track import SearchTrackParams, inscribed_radius_m
 from companion.plan.world import World
+from companion.sat.filter import SatParams
 from companion.sat.mixture import Mixture
 from companion.sat.tracks import Tracks
+from companion.sim.footprint import camera_footprint_xy
+from companion.vision.camera import CameraModel
 
 if TYPE_CHECKING:
     from companion.pipeline import SearchFrame
 
-__all__ = ["REACHED_M", "Carrot", "gate_limits", "hold_setpoint", "search_setpoint",
-           "tilt_cos", "vehicle_xy"]
+__all__ = ["REACHED_M", "Carrot", "gate_limits", "hold_setpoint", "search_params",
+           "search_setpoint", "tilt_cos", "vehicle_xy"]
 
 FloatArray = NDArray[np.float64]
 REACHED_M = 1.5  # the vehicle is this close to a waypoint: the planner moves on
@@ -37,15 +41,16 @@ class Carrot:
     """The point the vehicle follows (None: not placed yet) and the planner's progress."""
 
     xy_m: FloatArray | None = None
-    progress: int = 0
+    progress: PlanProgress = 0
 
     def advance(self, planner: Planner, vehicle_xy_m: FloatArray, mixture: Mixture,
                 tracks: Tracks, world: World, speed_m_s: float,
-                dt_s: float) -> tuple[FloatArray, Carrot]:
-        """The search-frame target now and the carrot moved on by speed_m_s * dt_s."""
+                dt_s: float, t_s: float = 0.0) -> tuple[FloatArray, Carrot]:
+        """The search-frame target now and the carrot moved on by speed_m_s * dt_s; t_s is the
+        estimator's time."""
         carrot = vehicle_xy_m if self.xy_m is None else self.xy_m
         waypoint, progress = planner.next_waypoint(carrot, mixture, tracks, world,
-                                                   self.progress)
+                                                   self.progress, t_s)
         if waypoint is None:
             return carrot, Carrot(self.xy_m, progress)
         carrot = move_towards(carrot, waypoint, speed_m_s * dt_s)
@@ -88,3 +93,16 @@ def search_setpoint(frame: SearchFrame, origin: LocalNed, target_xy_m: FloatArra
     lat, lon = frame.to_latlon(target_xy_m)[0]
     north, east, down = origin.geodetic_to_ned(lat, lon, alt_amsl_m)
     return Setpoint(float(north), float(east), float(down), yaw_deg)
+
+
+def search_params(search: SearchConfig, margin_m: float, camera: CameraModel, params: SatParams,
+                  area_xy_m: FloatArray) -> SearchTrackParams:
+    """What the search-and-track planner knows in flight: the disk inside the level camera's
+    footprint at the search altitude (less the footprint margin), p(D|F), the targets' motion,
+    the search area (search frame) and the configured stop rule."""
+    footprint = camera_footprint_xy(camera, search.altitude_m, search.heading_deg)
+    view_m = max(inscribed_radius_m(footprint) - margin_m, 0.5)
+    return SearchTrackParams(
+        view_radius_m=view_m, p_detect=params.p_detect,
+        unseen_targets=float(search.expected_targets or 1), stop_below=search.stop_when_left,
+        motion=params.tracks.motion, area_xy=area_xy_m)

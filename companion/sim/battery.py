@@ -5,7 +5,9 @@ it through the scenario parser, so every rule and default of a scenario file app
 family flies the lawn mower at 1 m/s over a 100 m x 100 m world with 5-10 targets drawn from the
 seed; the [filter] table is left at its defaults but for the sensor's own model (which the
 simulation passes from [sensor]) and the hint `target_speed` (the family's target speed). A
-variant is a named set of [filter] overrides on top of that.
+variant is a named set of [filter] overrides on top of that, and may fly another planner
+(`PLANNER_OF`: the variant "search-track" is the defaults with the search-and-track planner), so
+that `--variants defaults,search-track` puts the two planners side by side on the same seeds.
 
 `run_battery` runs families x variants x seeds 1..N on the execution engine (local processes or a
 dask cluster), prints one Markdown table per family with the variants side by side, and writes
@@ -57,7 +59,10 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "round-1": {"target_speed": 0.0, "confirm_existence": 1e-6, "drop_existence": 1e-6},
     # The labeled multi-Bernoulli filter at its defaults, beside the GM-PHD.
     "lmb": {"kind": "lmb"},
+    "search-track": {},  # the defaults, flown by the search-and-track planner (PLANNER_OF)
 }
+# The planner a variant flies instead of the families' lawn mower.
+PLANNER_OF: dict[str, str] = {"search-track": "search-track"}
 TIMING_COLUMNS = ("wall_s", "filter_s", "step_ms_median", "step_ms_p95")
 ID_COLUMNS = ("family", "seed", "variant", "filter_kind", "planner")
 
@@ -292,6 +297,8 @@ def family_scenario(family: str, seed: int, variant: str = "defaults") -> Scenar
     overrides = _known(variant, VARIANTS, "--variants")
     data = fam.build(seed)
     data["filter"] = {**data["filter"], "target_speed": fam.target_speed_m_s, **overrides}
+    if variant in PLANNER_OF:
+        data["robot"] = {**data["robot"], "planner": PLANNER_OF[variant]}
     return parse_scenario(data, name=fam.name)
 
 

@@ -24,10 +24,12 @@ from companion.metrics import (
 from companion.plan.planners import (
     LawnMower,
     Planner,
+    PlanProgress,
     lawnmower_path,
     make_planner,
     move_towards,
 )
+from companion.plan.search_track import SearchTrackParams, inscribed_radius_m
 from companion.plan.world import World
 from companion.sat.filter import SatParams, SatState, Scan, initial_state, step
 from companion.sat.fov import ConvexPolygon, Disk, Region
@@ -59,7 +61,21 @@ def filter_params(s: Scenario) -> SatParams:
 def scenario_planner(s: Scenario, world: World) -> Planner:
     """The scenario's planner."""
     r = s.robot
-    return make_planner(r.planner, world, np.array(r.start_xy), r.lane_spacing_m, r.sweeps)
+    return make_planner(r.planner, world, np.array(r.start_xy), r.lane_spacing_m, r.sweeps,
+                        search_params(s))
+
+
+def search_params(s: Scenario) -> SearchTrackParams:
+    """What the search-and-track planner knows in a scenario: the sure view (the FOV disk, or
+    the disk inside the camera footprint), p(D|F), the targets' motion class and its stop rule."""
+    if s.sensor.fov == FovKind.DISK:
+        view_m = s.sensor.fov_radius_m
+    else:
+        view_m = inscribed_radius_m(s.sensor.fov_polygon_xy)
+    return SearchTrackParams(
+        view_radius_m=view_m, p_detect=s.sensor.p_detect, unseen_targets=s.robot.unseen_targets,
+        stop_below=s.robot.stop_when_left, motion=filter_params(s).tracks.motion,
+    )
 
 
 def planned_steps(s: Scenario, world: World) -> int:
@@ -87,13 +103,13 @@ def _fly(
     robot_xy: FloatArray,
     state: SatState,
     world: World,
-    progress: int,
+    progress: PlanProgress,
     budget_m: float,
-) -> tuple[FloatArray, int]:
+) -> tuple[FloatArray, PlanProgress]:
     """Move the robot by up to budget_m along its plan (through several waypoints if need be)."""
     while budget_m > 1e-12:
         waypoint, progress = planner.next_waypoint(
-            robot_xy, state.mixture, state.tracks, world, progress
+            robot_xy, state.mixture, state.tracks, world, progress, state.t_s
         )
         if waypoint is None:
             break
@@ -256,7 +272,7 @@ def simulate(s: Scenario, progress: Progress | None = None) -> SimResult:
 
     n_steps = planned_steps(s, world)
     robot = np.array(s.robot.start_xy, dtype=np.float64)
-    progress_idx = 0
+    progress_idx: PlanProgress = 0
     series: dict[str, list[float]] = {
         key: []
         for key in (

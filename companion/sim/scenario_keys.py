@@ -112,6 +112,12 @@ SECTION_KEYS: dict[str, tuple[Key, ...]] = {
              "metres between lawn-mower lanes", field="lane_spacing_m"),
         Key("sweeps", Int(ge=1), 3,
              "lawn-mower passes over the whole world, each returning to start"),
+        Key("unseen_targets", Float(ge=0), 1.0,
+             "search-track: expected targets beside the initial belief, spread evenly over the "
+             "world until the sensor has looked"),
+        Key("stop_when_left", Float(ge=0), 0.05,
+             "search-track: the search ends (then only tracks are revisited) once fewer targets "
+             "than this are expected left to find"),
     ),
     "belief": (
         Key("kind", Choice("exact", "under", "over", "empty", "explicit"), "exact",

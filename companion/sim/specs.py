@@ -95,6 +95,8 @@ class RobotSpec:
     planner: PlannerKind
     lane_spacing_m: float
     sweeps: int
+    unseen_targets: float = 1.0  # search-track: expected targets beside the belief, spread evenly
+    stop_when_left: float = 0.05  # search-track: the search ends below this many left to find
 
 
 @dataclass(frozen=True, slots=True, eq=False)
