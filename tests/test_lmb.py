@@ -201,8 +201,9 @@ def _reference_step(
 
 
 def _mean(x: _Bernoulli) -> FloatArray:
-    total = sum(w for w, _, _ in x.parts)
-    result: FloatArray = sum(w * m for w, m, _ in x.parts) / total
+    weights = np.array([w for w, _, _ in x.parts])
+    means = np.array([m for _, m, _ in x.parts])
+    result: FloatArray = weights @ means / weights.sum()
     return result
 
 

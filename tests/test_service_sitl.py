@@ -13,6 +13,7 @@ import pytest
 from pymavlink import mavutil
 
 from companion.mission import TAKEOFF_REACHED_M
+from companion.sat.filter import FilterKind
 from companion.sim.scenario import Scenario, load_scenario
 from sitl.cli import sitl_scenarios
 from sitl.demo import FENCE_MARGIN_M, DemoResult, fly
@@ -97,6 +98,23 @@ def test_field_experiment_mission(flavour: Literal["px4", "ardupilot"], tmp_path
     log.close()
     assert kinds.get("BAD_DATA", 0) == 0
     assert kinds["HEARTBEAT"] > 20 and kinds["GLOBAL_POSITION_INT"] > 500
+
+
+def test_field_experiment_mission_with_the_lmb(tmp_path: Path) -> None:
+    """The field experiment flown by the service with filter.kind = "lmb"."""
+    s = _scenario("px4")
+    scenario = dataclasses.replace(s, filter=dataclasses.replace(s.filter, kind=FilterKind.LMB))
+    result = _fly(scenario, tmp_path)
+    assert result.run.mission_state == "done"
+    assert result.score.missed == 0, result.score.errors_m
+    assert np.all(result.score.errors_m < 1.0), result.score.errors_m
+    gaps = np.linalg.norm(result.tracks_xy_m[:, None] - result.truth_xy_m[None], axis=2)
+    assert np.all(gaps.min(axis=1) <= 3.0)  # no confirmed track far from every target
+    assert len(result.run.tracks) == 5
+    config = json.loads((result.run.out_dir / "config.json").read_text())
+    assert config["filter"]["kind"] == "lmb"
+    steps = _lines(result.run.out_dir / "steps.jsonl")
+    assert steps and all("confirmed" in s for s in steps)
 
 
 def test_pilot_takeover_stops_commanding_and_estimating_goes_on(tmp_path: Path) -> None:

@@ -187,9 +187,15 @@ def _predict(state: SatState, dt_s: float, params: SatParams) -> Mixture:
     tracks = state.tracks
     if not params.use_gp or tracks.size == 0 or prior.size == 0:
         return predicted
+    lmb_kind = params.kind is FilterKind.LMB
+    if lmb_kind and params.tracks.motion.speed_m_s == 0.0:
+        # Targets said to stand still (filter.target_speed = 0): the LMB's Bernoullis stay
+        # where their own updates put them, under the linear model's noise; a GP's trend over
+        # still targets is the pose's drift, not motion.
+        return predicted
     return apply_gp(
         predicted, prior, tracks.ids, tracks.confirmed, tracks.gp_fit(), params.gp,
-        state.t_s, state.t_s + dt_s, incremental=params.kind is FilterKind.LMB,
+        state.t_s, state.t_s + dt_s, incremental=lmb_kind,
     )
 
 

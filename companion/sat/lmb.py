@@ -91,11 +91,13 @@ def bernoullis(mixture: Mixture, t_s: float, params: SatParams) -> tuple[Mixture
 def grow_unseen(
     predicted: Mixture, tracks: Tracks, t_before_s: float, t_now_s: float, params: TrackParams
 ) -> Mixture:
-    """The components of confirmed tracks with the motion class's displacement variance added
-    for the step (Eq. iou_variance), and every component that reaches past the search area
-    moment-matched to its part inside (targets stay in the area; existence is unchanged): a
-    Bernoulli's own covariance says how far its target may have gone since its last detection."""
+    """The components of confirmed tracks seen moving with the motion class's displacement
+    variance added for the step (Eq. iou_variance): a Bernoulli's own covariance says how far
+    its target may have gone since its last detection. Inside a known search area, a moving
+    Bernoulli survives only inside it (p_S(x) = 1_A(x): its weight loses the mass outside) and
+    every component that reaches past it is moment-matched to its part inside."""
     motion = params.motion
+    moving = np.zeros(predicted.size, dtype=bool)
     covs = predicted.covs
     if motion.speed_m_s > 0.0 and predicted.size and tracks.confirmed.any():
         seen = tracks.seen_t_s
@@ -104,35 +106,38 @@ def grow_unseen(
             sv2, tau_c, t_before_s - seen
         )
         row = _rows(tracks, predicted.labels)
-        movers = tracks.confirmed & seen_moving(tracks, motion)
-        add = np.where(movers[row], growth[row], 0.0)
+        moving = (tracks.confirmed & seen_moving(tracks, motion))[row]
+        add = np.where(moving, growth[row], 0.0)
         covs = covs.copy()
         covs[:, 0, 0] += add
         covs[:, 1, 1] += add
-    grown = Mixture(predicted.weights, predicted.means, covs, predicted.labels)
-    if params.area is None or grown.size == 0:
-        return grown
-    mass = prob_in_region(grown.means[:, :2], grown.covs[:, :2, :2], params.area, check=False)
+    if params.area is None or predicted.size == 0:
+        return Mixture(predicted.weights, predicted.means, covs, predicted.labels)
+    mass = prob_in_region(predicted.means[:, :2], covs[:, :2, :2], params.area, check=False)
+    weights = np.where(moving, mass, 1.0) * predicted.weights
     edge = np.flatnonzero((mass < 1.0 - 1e-9) & (mass > 1e-6))
     if edge.size == 0:
-        return grown
-    means, covs = grown.means.copy(), grown.covs.copy()
+        return Mixture(weights, predicted.means, covs, predicted.labels)
+    means, covs = predicted.means.copy(), covs.copy()
     inside, first, second = truncation_moments(
         means[edge, :2], covs[edge, :2, :2], params.area, check=False
     )
     shift = first / inside[:, None]
     means[edge, :2] += shift
     covs[edge, :2, :2] = second / inside[:, None, None] - shift[:, :, None] * shift[:, None, :]
-    if grown.dim == 4:
+    if predicted.dim == 4:
         covs[edge, :2, 2:] = 0.0
         covs[edge, 2:, :2] = 0.0
-    return Mixture(grown.weights, means, covs, grown.labels)
+    return Mixture(weights, means, covs, predicted.labels)
 
 
 def seen_moving(tracks: Tracks, motion: TargetMotion) -> BoolArray:
     """(T,) tracks whose detected positions moved over their GP window: the least-squares
     displacement over the window's span exceeds half the class's typical displacement in that
-    time (Eq. iou_variance). A target seen standing still is not grown while unseen."""
+    time (Eq. iou_variance). A target seen standing still is not grown while unseen; with a
+    stationary motion class (speed 0) no target is moving."""
+    if motion.speed_m_s == 0.0:
+        return np.zeros(tracks.size, dtype=bool)
     count = tracks.win_count
     w = tracks.win_t_s.shape[1]
     valid = np.arange(w)[None, :] >= (w - count)[:, None]
