@@ -5,7 +5,8 @@ stamped with its capture time. The service's newest-frame grabber reads them, an
 frame goes through the pipeline (detect, project, GM-PHD step) as fast as the machine allows.
 It prints, at 640x480 and 1280x720: the frames per second processed, the frames skipped (the
 grabber drops stale frames instead of queueing them), and the latency from capture to updated
-tracks (median, p95, and its first and last fifths: a backlog would make the last grow).
+tracks (median, p95, and its first and last fifths: a backlog would make the last grow), with
+each estimator kind (filter.kind = "gmphd", then "lmb").
 
     python benchmarks/bench_pipeline.py [--seconds 10] [--fps 30]
 """
@@ -29,12 +30,18 @@ TAGS = [Tag(i, n, e, 0.5, 0.4 * i) for i, (n, e) in
 
 
 def bench(width_px: int, height_px: int, seconds: float, fps: float) -> None:
+    """Each estimator kind in turn at one resolution."""
+    for kind in ("gmphd", "lmb"):
+        bench_kind(width_px, height_px, seconds, fps, kind)
+
+
+def bench_kind(width_px: int, height_px: int, seconds: float, fps: float, kind: str) -> None:
     camera = CameraModel.from_hfov(90.0, width_px, height_px)
     renderer = Renderer(camera, texture_seed=1)
     rng = np.random.default_rng(0)
     pose = BodyPose(0.0, 0.0, 0.0, -ALTITUDE_M, (1.0, 0.0, 0.0, 0.0))
     frames = [renderer.render(pose, TAGS, rng) for _ in range(30)]
-    pipeline = Pipeline(pipeline_config(camera), camera)
+    pipeline = Pipeline(pipeline_config(camera, kind), camera)
     latencies_ms: list[float] = []
     detections = 0
     with published_frames(frames, fps) as (grabber, published):
@@ -58,7 +65,7 @@ def bench(width_px: int, height_px: int, seconds: float, fps: float) -> None:
         elapsed = time.monotonic() - start
     lat_ms = np.array(latencies_ms)
     fifth = max(len(lat_ms) // 5, 1)
-    print(f"{width_px}x{height_px}: {len(lat_ms) / elapsed:5.1f} frames/s processed of "
+    print(f"{width_px}x{height_px}, {kind}: {len(lat_ms) / elapsed:5.1f} frames/s processed of "
           f"{published[0] / elapsed:4.1f} published, {grabber.dropped} skipped by the grabber, "
           f"{detections / max(len(lat_ms), 1):.1f} tags per frame")
     print(f"  latency capture -> tracks: median {np.median(lat_ms):.1f} ms, "

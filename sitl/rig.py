@@ -32,8 +32,9 @@ _AREA_HALF_M = 30
 _CONNECT_S = 5.0
 
 
-def pipeline_config(camera: CameraModel) -> Any:
-    """A service configuration for this camera over a 60 m square around the origin."""
+def pipeline_config(camera: CameraModel, kind: str = "gmphd") -> Any:
+    """A service configuration for this camera over a 60 m square around the origin, with the
+    estimator `kind` (filter.kind)."""
     h = _AREA_HALF_M
     corners = [ORIGIN.ned_to_geodetic(n, e, 0.0)[:2] for n, e in
                ((-h, -h), (-h, h), (h, h), (h, -h))]
@@ -42,6 +43,7 @@ def pipeline_config(camera: CameraModel) -> Any:
                    "height_px": camera.height_px},
         "search": {"area": [[float(a), float(b)] for a, b in corners]},
         "detector": {"threads": 2},
+        "filter": {"kind": kind},
     })
 
 

@@ -16,14 +16,14 @@ and the joint association hypotheses of each cluster of Bernoullis that share ga
     r_l' = P_l(undetected) (r_l - sum_j w_j p_D,j) / phi_l(undetected) + sum_i P_l(i)   # Eq. lmb_r
 and a spatial mixture of the missed-detection components (the exact no-detection moments of the
 "moment" push rule) and the Kalman-updated ones. Clusters of one Bernoulli are solved in closed
-form; larger ones by ranked assignment (companion.sat.assign, a capped number of hypotheses).
+form; larger ones by enumerating their hypotheses, or past EXACT_LIMIT of them by a seeded Gibbs
+sampler with a fixed number of sweeps (companion.sat.hypotheses), so each step's cost is bounded.
 Adaptive birth: a measurement that the existing Bernoullis explain with probability r_U(z) gives
 a new Bernoulli with r_B(z) = (1 - r_U(z)) b / (b + kappa) (Eq. lmb_birth), b the birth intensity.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
@@ -32,9 +32,15 @@ from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from companion.sat.assign import k_best
 from companion.sat.birth import birth
 from companion.sat.fov import Region, prob_in_region, truncation_moments
+from companion.sat.hypotheses import (
+    EXACT_LIMIT,
+    GIBBS_SWEEPS,
+    exact_marginals,
+    gibbs_marginals,
+    hypothesis_bound,
+)
 from companion.sat.linalg import inv_det_2x2
 from companion.sat.mixture import Mixture
 from companion.sat.motion import TargetMotion, iou_variance_m2
@@ -49,15 +55,9 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
-MAX_HYPOTHESES = 200
-"""Association hypotheses kept per cluster of Bernoullis that share measurements."""
-
 GATE_SQ = 25.0
 """Squared Mahalanobis gate of an association (under P + R): a target's own measurement falls
 outside it with probability exp(-12.5) ~ 4e-6, so gating changes no marginal measurably."""
-
-_HYPOTHESIS_GAP = math.log(1e6)
-"""Hypotheses a million times less likely than a cluster's best are not enumerated."""
 
 _TINY = 1e-300
 
@@ -196,34 +196,14 @@ def associate(phi_undetected: FloatArray, phi: FloatArray) -> Association:
             undetected[bern[0]] = phi_undetected[bern[0]] / total
             detected[meas, bern[0]] = sub[:, 0] / total
             continue
-        p_undet, p_det = _ranked(phi_undetected[bern], sub)
+        if hypothesis_bound(sub) <= EXACT_LIMIT:
+            p_undet, p_det = exact_marginals(phi_undetected[bern], sub)
+        else:  # seeded by the cluster's first row: the same inputs give the same marginals
+            draws = np.random.default_rng(int(bern[0])).random((GIBBS_SWEEPS, bern.size))
+            p_undet, p_det = gibbs_marginals(phi_undetected[bern], sub, draws)
         undetected[bern] = p_undet
         detected[np.ix_(meas, bern)] = p_det
     return Association(undetected, detected)
-
-
-def _ranked(phi_undetected: FloatArray, phi: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Marginals of one cluster from its MAX_HYPOTHESES best hypotheses (Murty's ranked
-    assignment on costs -log phi: a Bernoulli takes one measurement or its own undetected
-    column)."""
-    m, n = phi.shape
-    cost = np.full((n, m + n), np.inf)
-    with np.errstate(divide="ignore"):
-        cost[:, :m] = -np.log(phi.T)
-    cost[np.arange(n), m + np.arange(n)] = -np.log(phi_undetected)
-    hypotheses = k_best(cost, MAX_HYPOTHESES, _HYPOTHESIS_GAP)
-    totals = np.array([h[0] for h in hypotheses])
-    weights = np.exp(-(totals - totals[0]))
-    weights /= weights.sum()
-    undetected = np.zeros(n)
-    detected = np.zeros((m, n))
-    cols = np.array([h[1] for h in hypotheses])  # (H, n)
-    for b in range(n):
-        took = cols[:, b]
-        own = took >= m
-        undetected[b] = weights[own].sum()
-        np.add.at(detected[:, b], took[~own], weights[~own])
-    return undetected, detected
 
 
 def update(
