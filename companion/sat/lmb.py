@@ -28,12 +28,11 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from companion.sat.birth import birth
-from companion.sat.fov import Region, prob_in_region, truncation_moments
+from companion.sat.fov import Disk, Region, prob_in_region, truncation_moments
 from companion.sat.hypotheses import (
     EXACT_LIMIT,
     GIBBS_SWEEPS,
@@ -113,7 +112,10 @@ def grow_unseen(
         covs[:, 1, 1] += add
     if params.area is None or predicted.size == 0:
         return Mixture(predicted.weights, predicted.means, covs, predicted.labels)
-    mass = prob_in_region(predicted.means[:, :2], covs[:, :2, :2], params.area, check=False)
+    mass = np.ones(predicted.size)
+    near = np.flatnonzero(~_deep_inside(predicted.means[:, :2], covs[:, :2, :2], params.area))
+    mass[near] = prob_in_region(predicted.means[near, :2], covs[near, :2, :2], params.area,
+                                check=False)
     weights = np.where(moving, mass, 1.0) * predicted.weights
     edge = np.flatnonzero((mass < 1.0 - 1e-9) & (mass > 1e-6))
     if edge.size == 0:
@@ -129,6 +131,21 @@ def grow_unseen(
         covs[edge, :2, 2:] = 0.0
         covs[edge, 2:, :2] = 0.0
     return Mixture(weights, means, covs, predicted.labels)
+
+
+def _deep_inside(means_xy: FloatArray, covs_xy: FloatArray, area: Region) -> BoolArray:
+    """(n,) Gaussians whose mean lies over 8 standard deviations (of the trace) inside the area:
+    their mass outside it is below 1e-15, so the area changes nothing for them."""
+    sd = np.sqrt(covs_xy[:, 0, 0] + covs_xy[:, 1, 1])
+    if isinstance(area, Disk):
+        depth = area.radius_m - np.hypot(*(means_xy - area.center_xy).T)
+    else:
+        v = area.vertices_xy  # counter-clockwise: the inside is left of every edge
+        edge = np.roll(v, -1, axis=0) - v
+        normal = np.column_stack([-edge[:, 1], edge[:, 0]]) / np.hypot(*edge.T)[:, None]
+        depth = ((means_xy[:, None, :] - v[None]) * normal[None]).sum(axis=2).min(axis=1)
+    result: BoolArray = depth > 8.0 * sd
+    return result
 
 
 def seen_moving(tracks: Tracks, motion: TargetMotion) -> BoolArray:
@@ -169,6 +186,28 @@ def _per_row(row: IntArray, values: FloatArray, n_rows: int) -> FloatArray:
     return sums
 
 
+@njit(cache=True, nogil=True)
+def _components(  # pragma: no cover - compiled; tested through associate
+    a: IntArray, b: IntArray, nodes: int
+) -> IntArray:
+    """The connected component (its smallest node) of each node of a graph with edges a-b."""
+    parent = np.arange(nodes)
+    for k in range(a.shape[0]):
+        x, y = a[k], b[k]
+        while parent[x] != x:
+            x = parent[x]
+        while parent[y] != y:
+            y = parent[y]
+        if x != y:
+            parent[max(x, y)] = min(x, y)
+    for v in range(nodes):
+        root = v
+        while parent[root] != root:
+            root = parent[root]
+        parent[v] = root
+    return parent
+
+
 def associate(phi_undetected: FloatArray, phi: FloatArray) -> Association:
     """Marginal association probabilities from the hypothesis factors (see the module).
 
@@ -181,11 +220,7 @@ def associate(phi_undetected: FloatArray, phi: FloatArray) -> Association:
     gated_i, gated_l = np.nonzero(phi > 0.0)
     if gated_i.size == 0:
         return Association(undetected, detected)
-    # A bipartite graph: nodes 0..n-1 are Bernoullis, n..n+m-1 measurements.
-    graph = coo_matrix(
-        (np.ones(gated_i.size), (gated_l, n + gated_i)), shape=(n + m, n + m)
-    )
-    _, component = connected_components(graph, directed=False)
+    component = _components(gated_l, n + gated_i, n + m)  # Bernoullis 0..n-1, measurements after
     involved = np.unique(gated_l)
     for c in np.unique(component[involved]):
         bern = involved[component[involved] == c]
