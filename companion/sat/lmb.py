@@ -44,7 +44,7 @@ from companion.sat.linalg import inv_det_2x2
 from companion.sat.mixture import Mixture
 from companion.sat.motion import TargetMotion, iou_variance_m2
 from companion.sat.reduce import _moment_match, merge, prune
-from companion.sat.tracks import TrackParams, Tracks, _concat, _new_tracks
+from companion.sat.tracks import TrackParams, Tracks, _concat, _new_tracks, pushed_windows
 from companion.sat.update import PushMode, detection, no_detection, visibility
 
 if TYPE_CHECKING:
@@ -358,14 +358,8 @@ def _maintain(
     alive = (r > 0.0) & ~(proven & (capped < tp.drop_existence))
     summary = _moment_match(Mixture(weights, mix.means, mix.covs, mix.labels), row, tracks.size)
     seen = np.flatnonzero(hit & alive)
-    win_t, win_xy, win_count = tracks.win_t_s, tracks.win_xy, tracks.win_count
-    if seen.size:
-        win_t, win_xy = win_t.copy(), win_xy.copy()
-        win_t[seen, :-1] = win_t[seen, 1:]
-        win_xy[seen, :-1] = win_xy[seen, 1:]
-        win_t[seen, -1] = t_s
-        win_xy[seen, -1] = summary.means[seen, :2]
-        win_count = np.minimum(win_count + hit, tp.window)
+    win_t, win_xy, win_count = pushed_windows(tracks, seen, summary.means[seen, :2], t_s,
+                                              tp.window)
     updated = replace(
         tracks,
         hits=hits,

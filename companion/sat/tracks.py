@@ -509,14 +509,8 @@ def _support(
     # The GP window holds detected positions only: a coasting track's own predictions would feed
     # back into its next prediction.
     seen = np.flatnonzero(hit)
-    win_t, win_xy, win_count = tracks.win_t_s, tracks.win_xy, tracks.win_count
-    if seen.size:
-        win_t, win_xy = win_t.copy(), win_xy.copy()
-        win_t[seen, :-1] = win_t[seen, 1:]
-        win_xy[seen, :-1] = win_xy[seen, 1:]
-        win_t[seen, -1] = t_s
-        win_xy[seen, -1] = mix.means[supported_by[seen], :2]
-        win_count = np.minimum(win_count + hit, params.window)
+    win_t, win_xy, win_count = pushed_windows(
+        tracks, seen, mix.means[supported_by[seen], :2], t_s, params.window)
     last_t = tracks.last_t_s.copy()
     last_t[rows] = t_s
     confirm = _confirmable(hits, score, params)
@@ -541,6 +535,22 @@ def _support(
         log=tracks.log.append(tracks.ids[rows], t_s, means[rows], covs[rows]),
         next_id=tracks.next_id,
     )
+
+
+def pushed_windows(
+    tracks: Tracks, rows: IntArray, xy: FloatArray, t_s: float, window: int
+) -> tuple[FloatArray, FloatArray, IntArray]:
+    """The GP windows (times, positions, counts) with a detection at t_s, positions xy (k, 2),
+    pushed onto the given rows; the other rows' windows are shared, not copied."""
+    if rows.size == 0:
+        return tracks.win_t_s, tracks.win_xy, tracks.win_count
+    win_t, win_xy, win_count = tracks.win_t_s.copy(), tracks.win_xy.copy(), tracks.win_count.copy()
+    win_t[rows, :-1] = win_t[rows, 1:]
+    win_xy[rows, :-1] = win_xy[rows, 1:]
+    win_t[rows, -1] = t_s
+    win_xy[rows, -1] = xy
+    win_count[rows] = np.minimum(win_count[rows] + 1, window)
+    return win_t, win_xy, win_count
 
 
 def _new_tracks(
