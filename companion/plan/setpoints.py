@@ -8,6 +8,7 @@ above home. `gate_limits` puts the configured geofence and altitude band into th
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -23,8 +24,7 @@ from companion.plan.world import World
 from companion.sat.filter import SatParams
 from companion.sat.mixture import Mixture
 from companion.sat.tracks import Tracks
-from companion.sim.footprint import camera_footprint_xy
-from companion.vision.camera import CameraModel
+from companion.vision.camera import BodyPose, CameraModel, ground_footprint
 
 if TYPE_CHECKING:
     from companion.pipeline import SearchFrame
@@ -95,13 +95,20 @@ def search_setpoint(frame: SearchFrame, origin: LocalNed, target_xy_m: FloatArra
     return Setpoint(float(north), float(east), float(down), yaw_deg)
 
 
+_FOOTPRINT_RANGE_M = 10_000.0
+"""Farthest ground the footprint's rays are followed to (the service's camera looks down)."""
+
+
 def search_params(search: SearchConfig, margin_m: float, camera: CameraModel, params: SatParams,
                   area_xy_m: FloatArray) -> SearchTrackParams:
     """What the search-and-track planner knows in flight: the disk inside the level camera's
     footprint at the search altitude (less the footprint margin), p(D|F), the targets' motion,
     the search area (search frame) and the configured stop rule."""
-    footprint = camera_footprint_xy(camera, search.altitude_m, search.heading_deg)
-    view_m = max(inscribed_radius_m(footprint) - margin_m, 0.5)
+    pose = BodyPose.from_euler(0.0, 0.0, 0.0, -search.altitude_m,
+                               yaw_rad=math.radians(search.heading_deg))
+    ground_ne = ground_footprint(camera, pose, _FOOTPRINT_RANGE_M,
+                                 8 if camera.has_distortion else 1)
+    view_m = max(inscribed_radius_m(ground_ne[:, ::-1]) - margin_m, 0.5)
     return SearchTrackParams(
         view_radius_m=view_m, p_detect=params.p_detect,
         unseen_targets=float(search.expected_targets or 1), stop_below=search.stop_when_left,

@@ -24,6 +24,7 @@ from companion.metrics import (
 from companion.plan.planners import (
     LawnMower,
     Planner,
+    PlannerKind,
     PlanProgress,
     lawnmower_path,
     make_planner,
@@ -61,8 +62,9 @@ def filter_params(s: Scenario) -> SatParams:
 def scenario_planner(s: Scenario, world: World) -> Planner:
     """The scenario's planner."""
     r = s.robot
+    search = search_params(s) if r.planner == PlannerKind.SEARCH_TRACK else None
     return make_planner(r.planner, world, np.array(r.start_xy), r.lane_spacing_m, r.sweeps,
-                        search_params(s))
+                        search)
 
 
 def search_params(s: Scenario) -> SearchTrackParams:
