@@ -43,7 +43,7 @@ from companion.errors import CompanionError
 from companion.notify import Notifier
 from companion.pipeline import Pipeline, StepRecord, camera_model
 from companion.plan.gate import GateAction, GateLimits, Setpoint, gate
-from companion.plan.planners import LawnMower, Planner, make_planner
+from companion.plan.planners import LawnMower, Planner, PlannerKind, make_planner
 from companion.plan.search_track import SearchTrackParams
 from companion.plan.setpoints import (
     Carrot,
@@ -152,8 +152,9 @@ class Service:
     def _make_planner(self, start_xy: FloatArray) -> Planner:
         """The configured planner; a lawn mower's passes each end where the search started."""
         s, world = self.config.search, self.pipeline.frame.world
+        search = self._search_params() if s.planner == PlannerKind.SEARCH_TRACK else None
         return make_planner(s.planner, world, world.clip(start_xy), s.lane_spacing_m, s.sweeps,
-                            self._search_params())
+                            search)
 
     def _search_params(self) -> SearchTrackParams:
         """What the search-and-track planner knows in this flight (setpoints.search_params)."""
