@@ -10,7 +10,7 @@ the Bernoulli's moments (`alone`: already its own honest belief, grown while uns
 One update, for the Bernoullis l and measurements z_i of a frame with footprint F:
     p_D,j = p(D|F) p(F)_j per component j                        # Eq. prob_of_detection
     phi_l(undetected) = 1 - sum_j w_j p_D,j                       # absent, or present and missed
-    phi_l(i) = sum_j w_j p_D,j N(z_i; H m_j, S_j) / kappa         # z_i is l's, not clutter
+    phi_l(i) = sum_j w_j p_D,j N(z_i; H m_j, S_j) / (kappa + b)   # z_i is l's, not clutter or new
 and the joint association hypotheses of each cluster of Bernoullis that share gated measurements
 (each measurement used at most once) weigh prod_l phi_l(theta_l). Their marginals give
     r_l' = P_l(undetected) (r_l - sum_j w_j p_D,j) / phi_l(undetected) + sum_i P_l(i)   # Eq. lmb_r
@@ -19,7 +19,9 @@ and a spatial mixture of the missed-detection components (the exact no-detection
 form; larger ones by enumerating their hypotheses, or past EXACT_LIMIT of them by a seeded Gibbs
 sampler with a fixed number of sweeps (companion.sat.hypotheses), so each step's cost is bounded.
 Adaptive birth: a measurement that the existing Bernoullis explain with probability r_U(z) gives
-a new Bernoulli with r_B(z) = (1 - r_U(z)) b / (b + kappa) (Eq. lmb_birth), b the birth intensity.
+a new Bernoulli with r_B(z) = (1 - r_U(z)) b / (b + kappa) (Eq. lmb_birth): kappa the clutter
+intensity and b that of measurements from targets not yet seen, birth_weight over the search area
+(over the frame when no area is known).
 """
 
 from __future__ import annotations
