@@ -64,7 +64,10 @@ def pose_sigma(floors: PoseConfig, reported: Accuracy) -> PoseUncertainty:
 def frame_observation(view: VehicleView, capture_s: float, image: NDArray[np.uint8],
                       pose: PoseConfig) -> Observation:
     """A frame taken at capture_s with the view's pose then (the height from its best source,
-    the autopilot's accuracy), or blind when the view has no plausible pose for that time."""
+    the autopilot's accuracy), or blind when the view has no plausible pose for that time or
+    the vehicle has landed."""
+    if view.landed():  # the camera at rest near the ground: its misses say nothing of the field
+        return Observation.nothing(capture_s, "on the ground")
     sample = view.poses.at(capture_s)
     if sample is None:
         glitch = view.gate.refusing_since_s is not None

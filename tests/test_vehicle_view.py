@@ -5,11 +5,13 @@ from __future__ import annotations
 import math
 from dataclasses import astuple
 
+import numpy as np
 import pytest
 
 from companion.config import PoseConfig
-from companion.drive import pose_sigma
+from companion.drive import frame_observation, pose_sigma
 from companion.vehicle.events import describe_event
+from companion.vehicle.mavsdk_link import FlightMode, Status
 from companion.vehicle.view import ACCURACY_FRESH_S, Accuracy, VehicleView, height_agl_m
 
 
@@ -70,6 +72,28 @@ def test_resting_height_and_firmware() -> None:
     assert view.ardupilot
     view.on_heartbeat(12)
     assert not view.ardupilot
+
+
+def test_frames_after_landing_are_blind_and_before_take_off_are_judged_by_height() -> None:
+    """Once the landed state has said "in the air", its "on the ground" makes every frame
+    blind, whatever height the altitude says (a baro's metre of drift on the ground)."""
+    view = VehicleView(Clock())
+    image = np.zeros((4, 4), dtype=np.uint8)
+    for k in range(40):
+        view.on_position(10.0 + 0.1 * k, 47.0, 8.0, 501.0, 1.02)
+        view.on_attitude(10.0 + 0.1 * k, (1.0, 0.0, 0.0, 0.0))
+
+    def status(in_air: bool) -> Status:
+        return Status(FlightMode.LAND, True, in_air, True, True, 80.0)
+
+    view.on_status(status(False))  # before any flight: the pose decides, as it did
+    before = frame_observation(view, 12.0, image, FLOORS)
+    assert before.blind is None and before.pose is not None
+    view.on_status(status(True))
+    assert frame_observation(view, 12.5, image, FLOORS).blind is None
+    view.on_status(status(False))
+    after = frame_observation(view, 13.0, image, FLOORS)
+    assert after.blind == "on the ground" and after.pose is None
 
 
 def test_px4_events_are_named_or_given_by_id() -> None:

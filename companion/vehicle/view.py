@@ -66,6 +66,7 @@ class VehicleView:
         self.gate = gate or PositionGate()
         self.rejected = {"position": 0, "local_position": 0, "attitude": 0, "implausible": 0}
         self.status: Status | None = None
+        self.has_flown = False  # the landed state has said "in the air" since the link came up
         self.on_mode_change: Callable[[], None] = lambda: None  # flight mode or arming changed
         self.local_ned_m: tuple[float, float, float] | None = None
         self.latest_boot_s: float | None = None
@@ -141,6 +142,7 @@ class VehicleView:
     def on_status(self, status: Status) -> None:
         """Mode, armed, health, battery; a change of mode or arming calls `on_mode_change`."""
         before, self.status = self.status, status
+        self.has_flown = self.has_flown or status.in_air
         if before is None or (before.flight_mode, before.armed) != (status.flight_mode,
                                                                     status.armed):
             self.on_mode_change()
@@ -172,6 +174,11 @@ class VehicleView:
         self.on_text(text)
 
     # -- what it knows -----------------------------------------------------------------------
+
+    def landed(self) -> bool:
+        """Whether the landed state says the vehicle is down again after it flew (a firmware
+        that never reports a landed state is never taken to have landed)."""
+        return self.has_flown and self.status is not None and not self.status.in_air
 
     def accuracy(self) -> Accuracy:
         """The autopilot's latest figures, each from the best source that gave it recently."""
