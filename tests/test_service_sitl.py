@@ -92,6 +92,11 @@ def test_field_experiment_mission(flavour: Literal["px4", "ardupilot"], tmp_path
 
     steps = _lines(result.run.out_dir / "steps.jsonl")
     assert sum(s["blind"] is None for s in steps) > 100
+    # Once down after the search, every step is blind: a camera at rest near the ground (its
+    # altitude drifting a metre above it) would count misses in view against the tags.
+    first_seen = next(i for i, s in enumerate(steps) if s["blind"] is None)
+    down = next(i for i in range(first_seen, len(steps)) if steps[i]["blind"] == "on the ground")
+    assert all(s["blind"] == "on the ground" for s in steps[down:])
     geojson = json.loads((result.run.out_dir / "tracks.geojson").read_text())
     assert len(geojson["features"]) == len(result.run.tracks) == 5
 
