@@ -123,8 +123,14 @@ class RunFolder:
         return RunFolder(new_run_dir(root, now), events=True)
 
     def write_snapshot(self, config: ServiceConfig, camera: CameraModel) -> None:
-        """What a replay needs besides the steps: the configuration and the camera model."""
-        (self.path / "config.json").write_text(json.dumps(config.data, indent=1))
+        """What a replay needs besides the steps: the configuration (its orthophoto named by
+        absolute path, so that a replay finds it) and the camera model."""
+        data = dict(config.data)
+        if config.view.orthophoto is not None:
+            view = data.get("view")
+            data["view"] = {**(view if isinstance(view, dict) else {}),
+                            "orthophoto": str(Path(config.view.orthophoto).resolve())}
+        (self.path / "config.json").write_text(json.dumps(data, indent=1))
         fields = {f.name: getattr(camera, f.name) for f in dataclasses.fields(camera)}
         (self.path / "camera.json").write_text(json.dumps(fields, indent=1))
         (self.path / "version.txt").write_text(f"companion {version('companion')}\n")

@@ -7,6 +7,7 @@ import math
 import sqlite3
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -38,16 +39,16 @@ def write_geotiff(path: Path, image: NDArray[np.generic], epsg: int | None, left
                   keys: list[int] | None = None, compress: bool = False) -> Path:
     """A GeoTIFF of image whose top-left corner is (left, top) in EPSG:epsg, pixel units square;
     with transformation, a ModelTransformation instead of scale and tiepoint."""
-    tags: list[tuple[int, str, int, tuple[float | int, ...]]] = []
+    tags: list[tuple[int | str, int | str, int | None, Any, bool]] = []
     if transformation is not None:
-        tags.append((34264, "d", 16, tuple(transformation)))
+        tags.append((34264, "d", 16, tuple(transformation), False))
     else:
-        tags += [(33550, "d", 3, (pixel, pixel, 0.0)),
-                 (33922, "d", 6, (0.0, 0.0, 0.0, left, top, 0.0))]
+        tags += [(33550, "d", 3, (pixel, pixel, 0.0), False),
+                 (33922, "d", 6, (0.0, 0.0, 0.0, left, top, 0.0), False)]
     directory = keys if keys is not None else (
         None if epsg is None else geokeys(epsg, geographic=geographic))
     if directory is not None:
-        tags.append((34735, "H", len(directory), tuple(directory)))
+        tags.append((34735, "H", len(directory), tuple(directory), False))
     tifffile.imwrite(path, image, photometric="rgb" if image.ndim == 3 else "minisblack",
                      extratags=tags, compression="zlib" if compress else None)
     return path
@@ -104,4 +105,5 @@ def decode_png(png: bytes) -> NDArray[np.uint8]:
     """A served PNG as RGBA."""
     image = cv2.imdecode(np.frombuffer(png, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     assert image is not None and image.shape[2] == 4
-    return cv2.cvtColor(image, cv2.COLOR_BGRA2RGBA)
+    rgba: NDArray[np.uint8] = np.asarray(cv2.cvtColor(image, cv2.COLOR_BGRA2RGBA), np.uint8)
+    return rgba

@@ -27,6 +27,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+import tifffile
 from numpy.typing import NDArray
 from pyproj import CRS, Transformer
 from pyproj.exceptions import CRSError, ProjError
@@ -75,7 +76,8 @@ class Orthophoto:
 
 @dataclass(frozen=True)
 class _Grid:
-    """Pixel centres (col, row) of a north-up raster in its CRS: X = x0 + dx col, Y = y0 + dy row."""
+    """Pixel centres (col, row) of a north-up raster in its CRS: X = x0 + dx col, Y = y0 + dy
+    row."""
 
     x0: float
     dx: float
@@ -111,7 +113,7 @@ class _Target:
         return x + self.frame.origin_utm_m[0], y + self.frame.origin_utm_m[1]
 
 
-class _Bad(Exception):
+class _FileError(Exception):
     """What is wrong with the file (made a ConfigError naming key and file by the caller)."""
 
 
@@ -123,17 +125,17 @@ def load_orthophoto(path: Path, frame: SearchFrame, geofence_latlon: FloatArray 
     try:
         target = _target(frame, geofence_latlon, margin_m)
         if not path.exists():
-            raise _Bad("no such file")
+            raise _FileError("no such file")
         if not path.is_file():
-            raise _Bad("is not a file")
+            raise _FileError("is not a file")
         suffix = path.suffix.lower()
         if suffix in GEOTIFF_EXT:
             rgba, bounds, res = _geotiff(path, target, max_side_px)
         elif suffix in MBTILES_EXT:
             rgba, bounds, res = _mbtiles(path, target, max_side_px)
         else:
-            raise _Bad("is neither a GeoTIFF (.tif, .tiff) nor an MBTiles file (.mbtiles)")
-    except _Bad as exc:
+            raise _FileError("is neither a GeoTIFF (.tif, .tiff) nor an MBTiles file (.mbtiles)")
+    except _FileError as exc:
         raise ConfigError(key, f"{path}: {exc}") from None
     except MemoryError:
         raise ConfigError(key, f"{path}: too large to read in this memory; crop it to the "
@@ -161,7 +163,8 @@ def _crs(epsg: int) -> CRS:
     try:
         return CRS.from_epsg(epsg)
     except CRSError:
-        raise _Bad(f"its coordinate reference system EPSG:{epsg} is not known to PROJ") from None
+        raise _FileError(f"its coordinate reference system EPSG:{epsg} is not known to "
+                         "PROJ") from None
 
 
 def _to_source(target: _Target, crs: CRS) -> Transformer:
@@ -182,7 +185,7 @@ def _native_resolution_m(target: _Target, grid: _Grid, crs: CRS) -> float:
     e, n = np.asarray(e), np.asarray(n)
     step = [math.hypot(e[k] - e[0], n[k] - n[0]) for k in (1, 2)]
     if not all(math.isfinite(s) and s > 0 for s in step):
-        raise _Bad("its georeference does not map to the search area's UTM zone")
+        raise _FileError("its georeference does not map to the search area's UTM zone")
     return min(step)
 
 
@@ -230,16 +233,17 @@ def _warp(source: Any, to_rgba: Callable[[Any], NDArray[np.uint8]], grid: _Grid,
     try:
         sx, sy = _to_source(target, crs).transform(*target.utm(gx, gy))
     except ProjError as exc:
-        raise _Bad(f"cannot be reprojected into the run's UTM zone: {exc}") from None
+        raise _FileError(f"cannot be reprojected into the run's UTM zone: {exc}") from None
     lat_col, lat_row = grid.pixel(np.asarray(sx), np.asarray(sy))
     if not (np.all(np.isfinite(lat_col)) and np.all(np.isfinite(lat_row))):
-        raise _Bad("its coordinate reference system does not reach the search area")
+        raise _FileError("its coordinate reference system does not reach the search area")
     n_rows, n_cols = int(source.shape[0]), int(source.shape[1])
     c_lo, c_hi = math.floor(lat_col.min()) - 1, math.ceil(lat_col.max()) + 1
     r_lo, r_hi = math.floor(lat_row.min()) - 1, math.ceil(lat_row.max()) + 1
-    c_lo, c_hi, r_lo, r_hi = max(c_lo, 0), min(c_hi, n_cols - 1), max(r_lo, 0), min(r_hi, n_rows - 1)
+    c_lo, c_hi = max(c_lo, 0), min(c_hi, n_cols - 1)
+    r_lo, r_hi = max(r_lo, 0), min(r_hi, n_rows - 1)
     if c_lo > c_hi or r_lo > r_hi:
-        raise _Bad("does not overlap the search area (nor the geofence)")
+        raise _FileError("does not overlap the search area (nor the geofence)")
     stride = max(1, int(res / native_m))  # a source much finer than the output: decimated
     window = to_rgba(source[r_lo:r_hi + 1:stride, c_lo:c_hi + 1:stride])
     lat_col, lat_row = (lat_col - c_lo) / stride, (lat_row - r_lo) / stride
@@ -267,7 +271,7 @@ def _warp(source: Any, to_rgba: Callable[[Any], NDArray[np.uint8]], grid: _Grid,
         out[start:start + len(rows)] = np.clip(np.rint(value), 0, 255).astype(np.uint8)
     has = out[..., 3] > 0
     if not has.any():
-        raise _Bad("does not overlap the search area (nor the geofence): no pixel of it "
+        raise _FileError("does not overlap the search area (nor the geofence): no pixel of it "
                    "falls there")
     used_rows, used_cols = np.flatnonzero(has.any(axis=1)), np.flatnonzero(has.any(axis=0))
     r_a, r_b, c_a, c_b = used_rows[0], used_rows[-1] + 1, used_cols[0], used_cols[-1] + 1
@@ -283,12 +287,12 @@ def _geokeys(values: Any) -> dict[int, int]:
     """The GeoKeyDirectory's keys held in the directory itself (short values)."""
     v = [int(x) for x in values]
     if len(v) < 4:
-        raise _Bad("its GeoKeyDirectory is truncated")
+        raise _FileError("its GeoKeyDirectory is truncated")
     count, keys = v[3], {}
     for k in range(count):
         entry = v[4 + 4 * k: 8 + 4 * k]
         if len(entry) < 4:
-            raise _Bad("its GeoKeyDirectory is truncated")
+            raise _FileError("its GeoKeyDirectory is truncated")
         key_id, location, _, value = entry
         if location == 0:
             keys[key_id] = value
@@ -301,14 +305,14 @@ def _geotiff_crs(keys: dict[int, int]) -> CRS:
     projected, geographic = keys.get(KEY_PROJECTED), keys.get(KEY_GEOGRAPHIC)
     if model == MODEL_PROJECTED or (model is None and projected is not None):
         if projected is None or projected == USER_DEFINED:
-            raise _Bad("its projected coordinate system has no EPSG code (user-defined): "
+            raise _FileError("its projected coordinate system has no EPSG code (user-defined): "
                        "reproject it to a UTM zone or EPSG:3857 first")
         return _crs(projected)
     if model == MODEL_GEOGRAPHIC or (model is None and geographic is not None):
         if geographic is None or geographic == USER_DEFINED:
-            raise _Bad("its geographic coordinate system has no EPSG code (user-defined)")
+            raise _FileError("its geographic coordinate system has no EPSG code (user-defined)")
         return _crs(geographic)
-    raise _Bad(f"its GeoKeyDirectory names no EPSG coordinate system (model type {model}): "
+    raise _FileError(f"its GeoKeyDirectory names no EPSG coordinate system (model type {model}): "
                "a geocentric or user-defined model is not supported")
 
 
@@ -318,27 +322,27 @@ def _geotiff_grid(tags: Any, keys: dict[int, int]) -> _Grid:
     if TAG_TRANSFORMATION in tags:
         m = [float(x) for x in tags[TAG_TRANSFORMATION].value]
         if len(m) != 16:
-            raise _Bad("its ModelTransformation does not hold 16 numbers")
+            raise _FileError("its ModelTransformation does not hold 16 numbers")
         a, b, d, e, f, h = m[0], m[1], m[3], m[4], m[5], m[7]
         if abs(b) > 1e-9 * abs(a) or abs(e) > 1e-9 * abs(f):
-            raise _Bad("it is rotated or sheared (its ModelTransformation is not north-up): "
+            raise _FileError("it is rotated or sheared (its ModelTransformation is not north-up): "
                        "warp it to a north-up raster first")
         if a == 0 or f == 0:
-            raise _Bad("its ModelTransformation has a zero pixel size")
+            raise _FileError("its ModelTransformation has a zero pixel size")
         return _Grid(d + a * half, a, h + f * half, f)
     if TAG_PIXEL_SCALE not in tags or TAG_TIEPOINT not in tags:
-        raise _Bad("it has no georeference (neither ModelPixelScale with ModelTiepoint nor "
+        raise _FileError("it has no georeference (neither ModelPixelScale with ModelTiepoint nor "
                    "ModelTransformation): not a GeoTIFF")
     scale = [float(x) for x in tags[TAG_PIXEL_SCALE].value]
     tie = [float(x) for x in tags[TAG_TIEPOINT].value]
     if len(scale) < 2 or len(tie) < 6:
-        raise _Bad("its ModelPixelScale or ModelTiepoint is truncated")
+        raise _FileError("its ModelPixelScale or ModelTiepoint is truncated")
     if len(tie) > 6:
-        raise _Bad(f"it has {len(tie) // 6} tiepoints (ground control points), not one with a "
-                   "pixel scale: warp it to a north-up raster first")
+        raise _FileError(f"it has {len(tie) // 6} tiepoints (ground control points), not one "
+                         "with a pixel scale: warp it to a north-up raster first")
     sx, sy = scale[0], scale[1]
     if not (sx > 0 and sy > 0 and math.isfinite(sx) and math.isfinite(sy)):
-        raise _Bad(f"its pixel scale ({sx}, {sy}) is not positive")
+        raise _FileError(f"its pixel scale ({sx}, {sy}) is not positive")
     i, j, x, y = tie[0], tie[1], tie[3], tie[4]
     return _Grid(x + (half - i) * sx, sx, y - (half - j) * sy, -sy)
 
@@ -378,10 +382,7 @@ def _rgba_of(photometric: int, colormap: Any, nodata: float | None,
                     hi - lo, 1e-12)
             data = np.clip(np.rint(data), 0, 255).astype(np.uint8)
         bands = data.shape[-1]
-        if bands in (1, 2):
-            rgb = np.repeat(data[..., :1], 3, axis=-1)
-        else:
-            rgb = data[..., :3]
+        rgb = np.repeat(data[..., :1], 3, axis=-1) if bands in (1, 2) else data[..., :3]
         if bands == 2 or (bands >= 4 and extra_alpha):
             alpha = np.minimum(alpha, data[..., 1 if bands == 2 else 3])
         if photometric == 0 and bands == 1:  # min-is-white grey
@@ -393,16 +394,14 @@ def _rgba_of(photometric: int, colormap: Any, nodata: float | None,
 
 def _geotiff(path: Path, target: _Target, max_side_px: int
              ) -> tuple[NDArray[np.uint8], tuple[float, float, float, float], float]:
-    import tifffile
-
     try:
         with tifffile.TiffFile(path) as tif:
             if not tif.pages:
-                raise _Bad("holds no image")
+                raise _FileError("holds no image")
             page = tif.pages.first
             tags = page.tags
             if TAG_GEOKEYS not in tags:
-                raise _Bad("it has no GeoKeyDirectory: a TIFF without georeference, not a "
+                raise _FileError("it has no GeoKeyDirectory: a TIFF without georeference, not a "
                            "GeoTIFF")
             keys = _geokeys(tags[TAG_GEOKEYS].value)
             crs = _geotiff_crs(keys)
@@ -417,18 +416,18 @@ def _geotiff(path: Path, target: _Target, max_side_px: int
                 data: Any = tifffile.memmap(path, page=0, mode="r")
             else:
                 if math.prod(shape) > MAX_DECODED_PIXELS * 4:
-                    raise _Bad(f"a compressed image of {shape[1]} x {shape[0]} pixels is too "
+                    raise _FileError(f"a compressed image of {shape[1]} x {shape[0]} pixels is too "
                                "large to decode whole; crop it to the search area (or save "
                                "it uncompressed) first")
                 data = page.asarray()
-    except _Bad:
+    except _FileError:
         raise
     except (tifffile.TiffFileError, ValueError, OSError, KeyError, TypeError) as exc:
-        raise _Bad(f"not a readable GeoTIFF: {exc}") from None
+        raise _FileError(f"not a readable GeoTIFF: {exc}") from None
     if data.ndim == 3 and int(page.planarconfig) == 2 and data.shape[0] <= 8:
         data = np.moveaxis(data, 0, -1)  # separate planes: (samples, rows, cols)
     if data.ndim not in (2, 3):
-        raise _Bad(f"its image has {data.ndim} dimensions: only one plane of grey, RGB or "
+        raise _FileError(f"its image has {data.ndim} dimensions: only one plane of grey, RGB or "
                    "RGBA is read")
     return _warp(data, convert, grid, crs, target, native, max_side_px)
 
@@ -437,21 +436,20 @@ def _geotiff(path: Path, target: _Target, max_side_px: int
 
 def _mercator_res_m(zoom: int, tile_px: int) -> float:
     """Web-mercator metres of one pixel of a zoom level."""
-    return 2 * MERCATOR_HALF_M / (tile_px * 2**zoom)
+    return float(2 * MERCATOR_HALF_M / (tile_px * 2**zoom))
 
 
 def _decode_tile(blob: bytes) -> NDArray[np.uint8]:
-    """A PNG or JPEG tile as RGBA, or _Bad."""
+    """A PNG or JPEG tile as RGBA, or _FileError."""
     image = cv2.imdecode(np.frombuffer(blob, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if image is None:
-        raise _Bad("its tiles are not PNG or JPEG images (vector tiles are not supported)")
+        raise _FileError("its tiles are not PNG or JPEG images (vector tiles are not supported)")
     if image.dtype != np.uint8:
         image = (image / 257).astype(np.uint8)
-    if image.ndim == 2:
-        return cv2.cvtColor(image, cv2.COLOR_GRAY2RGBA)
-    if image.shape[2] == 4:
-        return cv2.cvtColor(image, cv2.COLOR_BGRA2RGBA)
-    return cv2.cvtColor(image, cv2.COLOR_BGR2RGBA)
+    code = (cv2.COLOR_GRAY2RGBA if image.ndim == 2 else
+            cv2.COLOR_BGRA2RGBA if image.shape[2] == 4 else cv2.COLOR_BGR2RGBA)
+    rgba: NDArray[np.uint8] = np.asarray(cv2.cvtColor(image, code), dtype=np.uint8)
+    return rgba
 
 
 def _mbtiles(path: Path, target: _Target, max_side_px: int
@@ -459,20 +457,20 @@ def _mbtiles(path: Path, target: _Target, max_side_px: int
     try:
         db = sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro", uri=True)
     except sqlite3.Error as exc:
-        raise _Bad(f"cannot be opened: {exc}") from None
+        raise _FileError(f"cannot be opened: {exc}") from None
     try:
         try:
             zooms = [int(z) for (z,) in db.execute(
                 "SELECT DISTINCT zoom_level FROM tiles ORDER BY zoom_level")]
             first = db.execute("SELECT tile_data FROM tiles LIMIT 1").fetchone()
         except sqlite3.Error as exc:
-            raise _Bad(f"not an MBTiles file (no tiles table: {exc})") from None
+            raise _FileError(f"not an MBTiles file (no tiles table: {exc})") from None
         if not zooms or first is None:
-            raise _Bad("holds no tile")
+            raise _FileError("holds no tile")
         tile = _decode_tile(bytes(first[0]))
         tile_px = int(tile.shape[0])
         if tile.shape[1] != tile_px:
-            raise _Bad(f"its tiles are not square ({tile.shape[1]} x {tile.shape[0]})")
+            raise _FileError(f"its tiles are not square ({tile.shape[1]} x {tile.shape[0]})")
         return _mbtiles_warp(db, zooms, tile_px, target, max_side_px)
     finally:
         db.close()
@@ -522,7 +520,7 @@ def _mbtiles_warp(db: sqlite3.Connection, zooms: list[int], tile_px: int, target
         for column, tms_row, blob in rows:
             image = _decode_tile(bytes(blob))
             if image.shape[:2] != (tile_px, tile_px):
-                raise _Bad(f"its tiles differ in size ({image.shape[1]} x {image.shape[0]} "
+                raise _FileError(f"its tiles differ in size ({image.shape[1]} x {image.shape[0]} "
                            f"beside {tile_px} x {tile_px})")
             top = (n - 1 - int(tms_row) - ty0) * tile_px  # TMS rows count from the south
             left = (int(column) - tx0) * tile_px
@@ -530,9 +528,9 @@ def _mbtiles_warp(db: sqlite3.Connection, zooms: list[int], tile_px: int, target
         grid = _Grid(-MERCATOR_HALF_M + (tx0 * tile_px + 0.5) * res, res,
                      MERCATOR_HALF_M - (ty0 * tile_px + 0.5) * res, -res)
         try:
-            return _warp(mosaic, lambda w: np.asarray(w), grid, mercator, target,
+            return _warp(mosaic, np.asarray, grid, mercator, target,
                          res * ground, max_side_px)
-        except _Bad:
+        except _FileError:
             continue  # its tiles there are all transparent: another zoom may have some
-    raise _Bad(f"has no tile over the search area (nor the geofence) at any of its zoom "
+    raise _FileError(f"has no tile over the search area (nor the geofence) at any of its zoom "
                f"levels {zooms[0]}..{zooms[-1]}")
