@@ -17,6 +17,7 @@
     crs: L.CRS.Simple, preferCanvas: true, minZoom: -4, maxZoom: 7, zoomSnap: 0.25,
     attributionControl: false,
   });
+  state.map = map;  // for scripts and tests: where the page draws what
   L.control.scale({ imperial: false, metric: true }).addTo(map);
   // the operator's orthophoto lies in a pane of its own, under every other layer
   map.createPane("ortho");
@@ -59,12 +60,12 @@
     orthoOverlay = L.imageOverlay(ortho.url + query, L.latLngBounds([ll(w, s), ll(e, n)]), {
       pane: "ortho", interactive: false, alt: `orthophoto ${ortho.name}`, className: "orthophoto",
     });
-    if ($("ortho-on").checked) orthoOverlay.addTo(map);
-    const img = orthoOverlay.getElement();
-    if (img) {
+    orthoOverlay.on("add", () => {  // the image exists once the map has a view
+      const img = orthoOverlay.getElement();
       img.dataset.west = String(w); img.dataset.south = String(s);
       img.dataset.east = String(e); img.dataset.north = String(n);
-    }
+    });
+    if ($("ortho-on").checked) orthoOverlay.addTo(map);
   }
 
   $("ortho-on").addEventListener("change", () => {
