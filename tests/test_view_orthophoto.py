@@ -4,6 +4,7 @@ with one clear line naming the file."""
 
 from __future__ import annotations
 
+import asyncio
 import math
 from pathlib import Path
 
@@ -15,6 +16,8 @@ from pyproj import Transformer
 from companion.config import parse_config
 from companion.errors import ConfigError
 from companion.pipeline import SearchFrame
+from companion.service import Service
+from companion.view.live import LiveView
 from companion.view.orthophoto import MARGIN_M, Orthophoto, load_orthophoto
 from tests.orthophotos import (
     BLUE,
@@ -250,3 +253,24 @@ def test_mercator_helper_agrees_with_pyproj() -> None:  # the tests' own oracle
     t = Transformer.from_crs(4326, 3857, always_xy=True)
     x, y = t.transform(8.5457, 47.3978)
     assert mercator(47.3978, 8.5457) == pytest.approx((x, y), abs=1e-6)
+
+
+def test_the_live_page_names_the_orthophoto_and_a_bad_one_only_disables_it(
+        tmp_path: Path) -> None:
+    path, _, _ = _geotiff_over_area(tmp_path, 32632, 1.0)
+    lines: list[str] = []
+    config = parse_config(sitl_data(orthophoto=str(path)))
+    service = Service(config, announce=lines.append)
+    ortho, notes = asyncio.run(service._load_orthophoto())
+    assert ortho is not None and notes == []
+    assert lines[-1].startswith("view: orthophoto ortho.tif: ")
+    live = LiveView(config, service.pipeline.frame, service.pipeline.params.tracks,
+                    orthophoto=ortho, notes=notes)
+    assert live.server.scene["orthophoto"] == ortho.scene()
+    assert live.server.scene["orthophoto"]["url"] == "api/orthophoto.png"
+    bad = Service(parse_config(sitl_data(orthophoto=str(tmp_path / "none.tif"))),
+                  announce=lines.append)
+    ortho, notes = asyncio.run(bad._load_orthophoto())
+    assert ortho is None and len(notes) == 1 and "none.tif: no such file" in notes[0]
+    assert lines[-1] == ("view: warning: the orthophoto is not shown: view.orthophoto: "
+                         f"{tmp_path / 'none.tif'}: no such file")
