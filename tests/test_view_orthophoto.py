@@ -274,3 +274,25 @@ def test_the_live_page_names_the_orthophoto_and_a_bad_one_only_disables_it(
     assert ortho is None and len(notes) == 1 and "none.tif: no such file" in notes[0]
     assert lines[-1] == ("view: warning: the orthophoto is not shown: view.orthophoto: "
                          f"{tmp_path / 'none.tif'}: no such file")
+
+
+def test_a_16_bit_grey_geotiff_with_nodata(tmp_path: Path) -> None:
+    cx, cy = _utm_to(32632, W / 2, H / 2)
+    grey = np.full((200, 200), 1000, dtype=np.uint16)
+    grey[:, 100:] = 4000  # the east half brighter
+    grey[:, :80] = 0  # nodata west of 20 m before the area's centre: transparent
+    path = tmp_path / "grey.tif"
+    tifffile.imwrite(path, grey, photometric="minisblack", extratags=[
+        (33550, "d", 3, (1.0, 1.0, 0.0), False),
+        (33922, "d", 6, (0.0, 0.0, 0.0, cx - 100.0, cy + 100.0, 0.0), False),
+        (34735, "H", 16, tuple(geokeys(32632)), False), (42113, "s", 2, "0", False)])
+    ortho = load_orthophoto(path, FRAME, FENCE)
+    image = decode_png(ortho.png)
+    west, _, _, _ = ortho.bounds_m
+    assert west == pytest.approx(W / 2 - 20.0, abs=1.5)  # the nodata is cropped off
+    col, row = _pixel(ortho, W / 2 - 10, H / 2)
+    dark = image[row, col]
+    col, row = _pixel(ortho, W / 2 + 10, H / 2)
+    bright = image[row, col]
+    assert dark[3] == bright[3] == 255
+    assert dark[0] == dark[1] == dark[2] and bright[0] > 200 > 80 > dark[0] > 30

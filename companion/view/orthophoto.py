@@ -140,6 +140,9 @@ def load_orthophoto(path: Path, frame: SearchFrame, geofence_latlon: FloatArray 
     except MemoryError:
         raise ConfigError(key, f"{path}: too large to read in this memory; crop it to the "
                                "search area first") from None
+    except (ValueError, IndexError, TypeError, OverflowError, sqlite3.Error, cv2.error,
+            ProjError) as exc:  # a file this reader did not foresee: still one clear line
+        raise ConfigError(key, f"{path}: cannot be read ({type(exc).__name__}: {exc})") from None
     ok, png = cv2.imencode(".png", cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA))
     if not ok:
         raise ConfigError(key, f"{path}: the image could not be encoded as PNG")
@@ -372,15 +375,15 @@ def _rgba_of(photometric: int, colormap: Any, nodata: float | None,
             idx = np.clip(data[..., 0].astype(np.int64), 0, cmap.shape[1] - 1)
             rgb = (cmap[:, idx] // scale).astype(np.uint8).transpose(1, 2, 0)
             return np.dstack([rgb, alpha])
-        if data.dtype != np.uint8:
-            if np.issubdtype(data.dtype, np.integer):
-                data = (data.astype(np.float64) * 255.0 / np.iinfo(data.dtype).max)
-            else:
-                finite = data[np.isfinite(data)]
-                lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0, 1)
-                data = (np.nan_to_num(data.astype(np.float64), nan=lo) - lo) * 255.0 / max(
-                    hi - lo, 1e-12)
-            data = np.clip(np.rint(data), 0, 255).astype(np.uint8)
+        if data.dtype != np.uint8:  # stretched: 16-bit imagery rarely uses its whole range
+            values = data.astype(np.float64)
+            valid = np.isfinite(values) & (alpha[..., None] > 0)
+            sample = values[valid]
+            lo, hi = ((0.0 if np.issubdtype(data.dtype, np.integer)
+                       else float(np.percentile(sample, 0.1)), float(np.percentile(sample, 99.9)))
+                      if sample.size else (0.0, 1.0))
+            values = (np.nan_to_num(values, nan=lo) - lo) * 255.0 / max(hi - lo, 1e-12)
+            data = np.clip(np.rint(values), 0, 255).astype(np.uint8)
         bands = data.shape[-1]
         rgb = np.repeat(data[..., :1], 3, axis=-1) if bands in (1, 2) else data[..., :3]
         if bands == 2 or (bands >= 4 and extra_alpha):
