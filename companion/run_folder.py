@@ -32,11 +32,13 @@ from companion.report import TrackRecord, write_csv, write_geojson
 from companion.run_plots import plot_flight, plot_mahalanobis
 from companion.vision.camera import CameraModel
 
-__all__ = ["EVENTS", "STEPS", "JsonLines", "RunFolder", "new_run_dir", "read_camera",
-           "read_config", "read_records", "read_steps"]
+__all__ = ["EVENTS", "STEPS", "STEP_STATUS_KEYS", "JsonLines", "RunFolder", "new_run_dir",
+           "read_camera", "read_config", "read_records", "read_steps"]
 
 FloatArray = NDArray[np.float64]
 STEPS = "steps.jsonl"
+# the service's status a live step records beside the estimator's (none in older folders)
+STEP_STATUS_KEYS = ("mission", "link_ok", "camera_ok", "home_utm")
 EVENTS = "events.jsonl"
 
 

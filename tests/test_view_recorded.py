@@ -17,14 +17,14 @@ import pytest
 from companion.config import ServiceConfig, parse_config
 from companion.errors import ConfigError
 from companion.pipeline import SearchFrame, camera_model
-from companion.run_folder import RunFolder, read_config
+from companion.replay import replay_run
+from companion.run_folder import STEP_STATUS_KEYS, RunFolder, read_config, read_steps
 from companion.service import Service
 from companion.view.recorded import recorded_view
 from tests.orthophotos import ramp, write_geotiff
 from tests.test_view_model import ROOT, sitl_data
 
 STATES = ["waiting_for_vehicle", "arming", "taking_off", "searching", "searching", "done"]
-STATUS_KEYS = ("mission", "link_ok", "camera_ok", "home_utm")
 
 
 def field_geotiff(path: Path, config: ServiceConfig) -> Path:
@@ -104,7 +104,7 @@ def test_the_service_records_its_status_with_a_step() -> None:
     assert no_frame == {"mission": "waiting_for_vehicle", "link_ok": False,
                         "camera_ok": False, "home_utm": None}
     assert service._step_status(service.pipeline.blind(2.0, "no pose"))["camera_ok"] is True
-    assert tuple(no_frame) == STATUS_KEYS
+    assert tuple(no_frame) == STEP_STATUS_KEYS
 
 
 def test_the_run_s_orthophoto_is_recorded_by_absolute_path_and_shown(
@@ -161,3 +161,14 @@ def test_check_config_reads_the_orthophoto(tmp_path: Path) -> None:
             assert done.returncode == 2
             assert f"view.orthophoto: {tmp_path / 'missing.tif'}: no such file" in done.stderr
             assert "Traceback" not in done.stderr
+
+
+def test_a_replay_of_a_run_folder_keeps_the_recorded_status(tmp_path: Path) -> None:
+    config = parse_config(sitl_data())
+    live = write_run(tmp_path / "run", config)
+    replay_run(tmp_path / "run", tmp_path / "replayed", redetect=False)
+    steps = read_steps(tmp_path / "replayed")
+    assert [{k: s[k] for k in STEP_STATUS_KEYS} for s in steps] == [
+        {k: r[k] for k in STEP_STATUS_KEYS} for r in live]
+    view = recorded_view(tmp_path / "replayed", config, camera_model(config.camera))
+    assert [m["mission"] for m in _messages(view.steps)] == STATES
