@@ -107,3 +107,16 @@ def decode_png(png: bytes) -> NDArray[np.uint8]:
     assert image is not None and image.shape[2] == 4
     rgba: NDArray[np.uint8] = np.asarray(cv2.cvtColor(image, cv2.COLOR_BGRA2RGBA), np.uint8)
     return rgba
+
+
+def grass(rows: int, cols: int, seed: int = 7) -> NDArray[np.uint8]:
+    """An RGB field of grass (seeded noise at two scales), for a page that looks like one."""
+    rng = np.random.default_rng(seed)
+    blurred = np.asarray(cv2.GaussianBlur(rng.normal(0.0, 1.0, (rows, cols)), (0, 0), 25),
+                         dtype=np.float64)
+    coarse = blurred / max(float(np.abs(blurred).max()), 1e-9)
+    fine = rng.normal(0.0, 1.0, (rows, cols))
+    shade = 0.8 + 0.15 * coarse + 0.05 * fine
+    base = np.array([104.0, 138.0, 72.0])
+    field: NDArray[np.uint8] = np.clip(shade[..., None] * base, 0, 255).astype(np.uint8)
+    return field
