@@ -11,9 +11,10 @@ no overlap with the area) is a ConfigError naming the key (or flag), the file an
 GeoTIFF: tifffile reads ModelPixelScale with one ModelTiepoint, or a ModelTransformation without
 rotation or shear, and the EPSG code of the GeoKeyDirectory (projected, or geographic degrees);
 GDAL_NODATA pixels are transparent. A file tifffile can memory-map is read in the window needed
-only; a compressed one of more than MAX_DECODED_PIXELS is refused. MBTiles: the zoom whose
-resolution is nearest the wanted one (not coarser when a finer one has tiles over the area),
-its PNG or JPEG tiles (TMS rows) decoded with OpenCV into a web-mercator mosaic.
+only; a compressed one that decodes to more than MAX_DECODED_BYTES is refused. MBTiles: the
+coarsest zoom at least as fine as the served image shows (else the finest; others when it has
+no tile over the area), its PNG or JPEG tiles (TMS rows) decoded with OpenCV into a
+web-mercator mosaic.
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ __all__ = ["MARGIN_M", "MAX_SIDE_PX", "Orthophoto", "load_orthophoto"]
 FloatArray = NDArray[np.float64]
 MARGIN_M = 30.0  # around the search area and the fence: the map's edge shows ground, not grey
 MAX_SIDE_PX = 4096  # the served image: at most 4096 x 4096 RGBA (64 MB while it is made)
-MAX_DECODED_PIXELS = 120_000_000  # a compressed GeoTIFF is decoded whole: about 480 MB RGBA
+MAX_DECODED_BYTES = 480_000_000  # a compressed GeoTIFF is decoded whole: at most this much
 MAX_MOSAIC_SIDE_PX = 2 * MAX_SIDE_PX  # the MBTiles mosaic of one zoom, before its warp
 LATTICE_PX = 32  # the projection is evaluated every 32 output pixels, interpolated between
 CHUNK_ROWS = 256  # output rows sampled at once (bounds the temporary arrays)
@@ -376,7 +377,7 @@ def _rgba_of(photometric: int, colormap: Any, nodata: float | None,
             rgb = (cmap[:, idx] // scale).astype(np.uint8).transpose(1, 2, 0)
             return np.dstack([rgb, alpha])
         if data.dtype != np.uint8:  # stretched: 16-bit imagery rarely uses its whole range
-            values = data.astype(np.float64)
+            values = data.astype(np.float32)
             valid = np.isfinite(values) & (alpha[..., None] > 0)
             sample = values[valid]
             lo, hi = ((0.0 if np.issubdtype(data.dtype, np.integer)
@@ -418,7 +419,7 @@ def _geotiff(path: Path, target: _Target, max_side_px: int
             if page.is_memmappable:
                 data: Any = tifffile.memmap(path, page=0, mode="r")
             else:
-                if math.prod(shape) > MAX_DECODED_PIXELS * 4:
+                if math.prod(shape) * page.dtype.itemsize > MAX_DECODED_BYTES:
                     raise _FileError(f"a compressed image of {shape[1]} x {shape[0]} pixels is too "
                                "large to decode whole; crop it to the search area (or save "
                                "it uncompressed) first")
