@@ -419,7 +419,8 @@ def _geotiff(path: Path, target: _Target, max_side_px: int
             if page.is_memmappable:
                 data: Any = tifffile.memmap(path, page=0, mode="r")
             else:
-                if math.prod(shape) * page.dtype.itemsize > MAX_DECODED_BYTES:
+                itemsize = 8 if page.dtype is None else page.dtype.itemsize
+                if math.prod(shape) * itemsize > MAX_DECODED_BYTES:
                     raise _FileError(f"a compressed image of {shape[1]} x {shape[0]} pixels is too "
                                "large to decode whole; crop it to the search area (or save "
                                "it uncompressed) first")
