@@ -13,6 +13,7 @@ import pytest
 import tifffile
 from pyproj import Transformer
 
+import companion.view.orthophoto as orthophoto_module
 from companion.config import parse_config
 from companion.errors import ConfigError
 from companion.pipeline import SearchFrame
@@ -296,3 +297,16 @@ def test_a_16_bit_grey_geotiff_with_nodata(tmp_path: Path) -> None:
     bright = image[row, col]
     assert dark[3] == bright[3] == 255
     assert dark[0] == dark[1] == dark[2] and bright[0] > 200 and 30 < dark[0] < 80
+
+
+def test_ground_control_points_and_a_compressed_file_too_large(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    gcps = tmp_path / "gcps.tif"
+    tifffile.imwrite(gcps, ramp(16, 16), photometric="rgb", extratags=[
+        (33922, "d", 12, (0, 0, 0, 465700.0, 5249500.0, 0, 16, 16, 0, 465716.0, 5249484.0, 0),
+         False), (34735, "H", 16, tuple(geokeys(32632)), False)])
+    _refused(gcps, "2 tiepoints")
+    path, _, _ = _geotiff_over_area(tmp_path, 32632, 1.0, compress=True)
+    assert load_orthophoto(path, FRAME, FENCE).size_px[0] > 0
+    monkeypatch.setattr(orthophoto_module, "MAX_DECODED_BYTES", 256 * 256 * 3 - 1)
+    _refused(path, "too large to decode whole")

@@ -334,6 +334,10 @@ def _geotiff_grid(tags: Any, keys: dict[int, int]) -> _Grid:
         if a == 0 or f == 0:
             raise _FileError("its ModelTransformation has a zero pixel size")
         return _Grid(d + a * half, a, h + f * half, f)
+    if TAG_TIEPOINT in tags and len(tags[TAG_TIEPOINT].value) > 6:
+        raise _FileError(f"it has {len(tags[TAG_TIEPOINT].value) // 6} tiepoints (ground "
+                         "control points), not one with a pixel scale: warp it to a north-up "
+                         "raster first")
     if TAG_PIXEL_SCALE not in tags or TAG_TIEPOINT not in tags:
         raise _FileError("it has no georeference (neither ModelPixelScale with ModelTiepoint nor "
                    "ModelTransformation): not a GeoTIFF")
@@ -341,9 +345,6 @@ def _geotiff_grid(tags: Any, keys: dict[int, int]) -> _Grid:
     tie = [float(x) for x in tags[TAG_TIEPOINT].value]
     if len(scale) < 2 or len(tie) < 6:
         raise _FileError("its ModelPixelScale or ModelTiepoint is truncated")
-    if len(tie) > 6:
-        raise _FileError(f"it has {len(tie) // 6} tiepoints (ground control points), not one "
-                         "with a pixel scale: warp it to a north-up raster first")
     sx, sy = scale[0], scale[1]
     if not (sx > 0 and sy > 0 and math.isfinite(sx) and math.isfinite(sy)):
         raise _FileError(f"its pixel scale ({sx}, {sy}) is not positive")
