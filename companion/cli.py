@@ -131,16 +131,31 @@ def _check_view_token(config: ServiceConfig) -> None:
         load_token(Path(config.view.token_file))
 
 
+def _check_orthophoto(config: ServiceConfig) -> str:
+    """A view orthophoto that cannot be read stops check-config (`run` flies on without it:
+    docs/view.md); what it makes, for the report line."""
+    if not (config.view.enabled and config.view.orthophoto is not None):
+        return ""
+    from companion.pipeline import SearchFrame
+    from companion.view.orthophoto import load_orthophoto
+
+    ortho = load_orthophoto(Path(config.view.orthophoto), SearchFrame.from_config(config.search),
+                            config.safety.geofence_latlon)
+    w, h = ortho.size_px
+    return f", orthophoto {ortho.name} of {w} x {h} px at {ortho.resolution_m:.2f} m"
+
+
 def _check_config(args: argparse.Namespace) -> int:
     from companion.config import load_config
 
     config = load_config(args.config)
     _check_signing_key(config)
     _check_view_token(config)
+    ortho = _check_orthophoto(config)
     s = config.search
     print(f"{args.config}: ok (vehicle {config.vehicle.connection}, camera "
           f"{config.camera.source}, search area of {s.area_latlon.shape[0]} vertices in "
-          f"EPSG:{s.utm_epsg} at {s.altitude_m:g} m, reports to {config.output.dir})")
+          f"EPSG:{s.utm_epsg} at {s.altitude_m:g} m, reports to {config.output.dir}{ortho})")
     return EXIT_OK
 
 
@@ -244,7 +259,7 @@ def _serve_view(run_dir: Path, args: argparse.Namespace, config: ServiceConfig |
         raise ConfigError("--token-file", f"is required when --bind ({args.bind}) is not a "
                           "loopback address")
     token = None if args.token_file is None else load_token(args.token_file)
-    view = recorded_view(run_dir, config, camera)
+    view = recorded_view(run_dir, config, camera, args.orthophoto)
     for warning in view.warnings:
         print(f"companion: warning: {warning}", file=sys.stderr)
 
@@ -254,7 +269,9 @@ def _serve_view(run_dir: Path, args: argparse.Namespace, config: ServiceConfig |
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, stop.set)
         server = ViewServer(view.scene, bind=args.bind, port=args.port, token=token,
-                            steps=view.steps, address_keys=("--bind", "--port"))
+                            steps=view.steps, address_keys=("--bind", "--port"),
+                            orthophoto_png=None if view.orthophoto is None
+                            else view.orthophoto.png)
         await server.start()
         print(f"view of {run_dir.name} ({len(view.steps)} steps) at {server.url}"
               f"{'' if token is None else ' (add ?token=... from the token file)'}; "
@@ -282,6 +299,9 @@ def _add_view_arguments(parser: argparse.ArgumentParser, flag: str = "") -> None
                         help=f"{flag}TCP port of the page (default 8090; 0: any free port)")
     parser.add_argument("--token-file", type=Path, default=None,
                         help=f"{flag}file holding the access token the page requires (mode 600)")
+    parser.add_argument("--orthophoto", type=Path, default=None,
+                        help=f"{flag}GeoTIFF or MBTiles file under the map, instead of the one "
+                             "of the run's configuration")
 
 
 def _positive_int(text: str) -> int:

@@ -35,6 +35,7 @@ from companion.keys import (
     Int,
     Ints,
     Key,
+    PathText,
     Points,
     Text,
     load_toml,
@@ -184,6 +185,7 @@ class ViewConfig:
     port: int
     token_file: str | None
     max_clients: int
+    orthophoto: str | None
 
 
 @dataclass(frozen=True, slots=True)
@@ -357,6 +359,9 @@ SECTIONS: dict[str, tuple[Key, ...]] = {
             "file holding the access token the page and its stream require (mode 600)"),
         Key("max_clients", Int(ge=1, le=64), 8,
             "browsers connected at once; more are refused"),
+        Key("orthophoto", PathText(), Derived("none: no background image"),
+            "the operator's orthophoto under the map, a GeoTIFF (.tif, .tiff) or MBTiles "
+            "(.mbtiles) file; relative to this file; empty: none (docs/view.md)"),
     ),
 }
 
@@ -445,8 +450,11 @@ def _cross_sections(t: dict[str, dict[str, Any]], errors: ErrorCollector) -> Non
 
 def _relative_paths(t: dict[str, dict[str, Any]], base: Path | None) -> None:
     """The file names of the configuration made relative to its folder."""
+    if "view" in t and t["view"]["orthophoto"] == "":
+        t["view"]["orthophoto"] = None  # empty: no orthophoto
     for section, leaf in (("camera", "calibration"), ("output", "dir"),
-                          ("vehicle", "signing_key_file"), ("view", "token_file")):
+                          ("vehicle", "signing_key_file"), ("view", "token_file"),
+                          ("view", "orthophoto")):
         if section in t and t[section][leaf] is not None:
             t[section][leaf] = _relative(base, t[section][leaf])
 

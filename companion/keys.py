@@ -166,6 +166,18 @@ class Text(Kind[str]):
         return raw
 
 
+class PathText(Kind[str]):
+    """A file name; the empty string stands for none (the reader makes it None)."""
+
+    doc = "string (empty: none)"
+
+    def parse(self, key: str, raw: object) -> str:
+        if not isinstance(raw, str):
+            raise ConfigError(key, f"must be a string (a file name, or empty), got "
+                                   f"{describe(raw)}")
+        return raw
+
+
 class Choice(Kind[T]):
     """One of a fixed set of options: strings, or members of a str-valued Enum (parsed to them)."""
 

@@ -40,7 +40,13 @@ from companion.flightlog import FlightLog, read_flight_log
 from companion.metrics import mahalanobis_to_tracks
 from companion.pipeline import Pipeline, StepRecord, camera_model
 from companion.report import Score, TrackRecord, confirmed_tracks, score
-from companion.run_folder import RunFolder, read_camera, read_config, read_records
+from companion.run_folder import (
+    STEP_STATUS_KEYS,
+    RunFolder,
+    read_camera,
+    read_config,
+    read_records,
+)
 from companion.vehicle.plausibility import PositionGate, offset_ne_m
 from companion.vehicle.view import VehicleView
 from companion.vision.camera import CameraModel
@@ -201,11 +207,13 @@ def replay_run(run_dir: Path, out_dir: Path, config: ServiceConfig | None = None
     if config is None:
         config = read_config(run_dir)
     replay = _Replay(config, read_camera(run_dir), out_dir, truth_latlon)
-    inputs = [(r["input"], r.get("blind")) for r in read_records(run_dir / "steps.jsonl",
-                                                                  replay.warnings) if "input" in r]
+    records = [r for r in read_records(run_dir / "steps.jsonl", replay.warnings) if "input" in r]
+    inputs = [(r["input"], r.get("blind")) for r in records]
+    statuses = [{k: r[k] for k in STEP_STATUS_KEYS if k in r} for r in records]
     missing: list[int] = []
 
     def on_step(record: StepRecord) -> None:
+        record.extra.update(statuses[replay.steps])  # the live step's status, as recorded
         replay.add(record)
         if progress is not None:
             progress(replay.steps, len(inputs))

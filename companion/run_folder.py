@@ -32,11 +32,13 @@ from companion.report import TrackRecord, write_csv, write_geojson
 from companion.run_plots import plot_flight, plot_mahalanobis
 from companion.vision.camera import CameraModel
 
-__all__ = ["EVENTS", "STEPS", "JsonLines", "RunFolder", "new_run_dir", "read_camera",
-           "read_config", "read_records", "read_steps"]
+__all__ = ["EVENTS", "STEPS", "STEP_STATUS_KEYS", "JsonLines", "RunFolder", "new_run_dir",
+           "read_camera", "read_config", "read_records", "read_steps"]
 
 FloatArray = NDArray[np.float64]
 STEPS = "steps.jsonl"
+# the service's status a live step records beside the estimator's (none in older folders)
+STEP_STATUS_KEYS = ("mission", "link_ok", "camera_ok", "home_utm")
 EVENTS = "events.jsonl"
 
 
@@ -123,8 +125,14 @@ class RunFolder:
         return RunFolder(new_run_dir(root, now), events=True)
 
     def write_snapshot(self, config: ServiceConfig, camera: CameraModel) -> None:
-        """What a replay needs besides the steps: the configuration and the camera model."""
-        (self.path / "config.json").write_text(json.dumps(config.data, indent=1))
+        """What a replay needs besides the steps: the configuration (its orthophoto named by
+        absolute path, so that a replay finds it) and the camera model."""
+        data = dict(config.data)
+        if config.view.orthophoto is not None:
+            view = data.get("view")
+            data["view"] = {**(view if isinstance(view, dict) else {}),
+                            "orthophoto": str(Path(config.view.orthophoto).resolve())}
+        (self.path / "config.json").write_text(json.dumps(data, indent=1))
         fields = {f.name: getattr(camera, f.name) for f in dataclasses.fields(camera)}
         (self.path / "camera.json").write_text(json.dumps(fields, indent=1))
         (self.path / "version.txt").write_text(f"companion {version('companion')}\n")

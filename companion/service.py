@@ -67,6 +67,7 @@ from companion.vehicle.signing import SigningRelay, load_signing_key
 from companion.vehicle.view import VehicleView
 from companion.view.live import LiveView
 from companion.view.model import Status, Vehicle, yaw_deg
+from companion.view.orthophoto import Orthophoto, load_orthophoto
 from companion.vision.camera import CameraModel
 
 __all__ = ["RunResult", "Service", "camera_model"]
@@ -85,6 +86,7 @@ POSE_WAIT_S = 1.5  # a frame may wait this long for the telemetry of its capture
 POSE_POLL_S = 0.02
 CHECKPOINT_EVERY_S = 5.0  # estimator time between checkpoints
 RESUME_WITHIN_S = 600.0  # a restarted service carries on from a checkpoint younger than this
+CAMERA_BLIND = ("no frame", "blank frame", "frozen frame")  # blind for the camera's sake
 
 @dataclass
 class RunResult:
@@ -260,12 +262,14 @@ class Service:
             self.counters.update({f"rejected_{k}": v for k, v in self.view.rejected.items()})
 
     async def _start_view(self) -> None:
-        """Serve the operator's page (view.enabled); an address that cannot be taken is
-        logged and the flight goes on without it."""
+        """Serve the operator's page (view.enabled); an address that cannot be taken, or an
+        orthophoto that cannot be read, is logged and the flight goes on without it."""
         v = self.config.view
         if not v.enabled:
             return
-        live = LiveView(self.config, self.pipeline.frame, self.pipeline.params.tracks, self._log)
+        orthophoto, notes = await self._load_orthophoto()
+        live = LiveView(self.config, self.pipeline.frame, self.pipeline.params.tracks, self._log,
+                        orthophoto=orthophoto, notes=notes)
         try:
             await live.start()
         except CompanionError as exc:
@@ -275,6 +279,27 @@ class Service:
         self.live = live
         self._log(f"view: serving the operator's page at {live.server.url}")
         self._event("view", url=live.server.url, token=v.token_file is not None)
+
+    async def _load_orthophoto(self) -> tuple[Orthophoto | None, list[str]]:
+        """The configured orthophoto (off the event loop), or None and the page's note why."""
+        path = self.config.view.orthophoto
+        if path is None:
+            return None, []
+        loop = asyncio.get_running_loop()
+        try:
+            ortho = await loop.run_in_executor(None, partial(
+                load_orthophoto, Path(path), self.pipeline.frame,
+                self.config.safety.geofence_latlon))
+        except Exception as exc:  # a field service flies on without its background image
+            reason = str(exc) if isinstance(exc, CompanionError) else (
+                f"view.orthophoto: {path}: cannot be read ({type(exc).__name__}: {exc})")
+            self._log(f"view: warning: the orthophoto is not shown: {reason}")
+            self._event("view_orthophoto_failed", error=reason)
+            return None, [f"The orthophoto is not shown: {reason}"]
+        w, h = ortho.size_px
+        self._log(f"view: orthophoto {ortho.name}: {w} x {h} px at "
+                  f"{ortho.resolution_m:.2f} m per pixel")
+        return ortho, []
 
     async def _close_view(self) -> None:
         """Stop serving the page (once); its counters join the run's."""
@@ -300,8 +325,19 @@ class Service:
             hx, hy = vehicle_xy(self.pipeline.frame, origin.lat_deg, origin.lon_deg)
             home = (float(hx), float(hy))
         return Status(self.mission.state.value, self._inputs().connected,
-                      record.blind not in ("no frame", "blank frame", "frozen frame"),
+                      record.blind not in CAMERA_BLIND,
                       {**self.counters, "frames_dropped": frames_dropped}, home)
+
+    def _step_status(self, record: StepRecord) -> dict[str, Any]:
+        """What steps.jsonl keeps of the service's status at a step, for the replay view:
+        the mission state, link and camera health, and home (UTM) once known."""
+        origin = self.view.local_origin()
+        home = None
+        if origin is not None:
+            e, n = self.pipeline.frame.utm.geodetic_to_utm(origin.lat_deg, origin.lon_deg)
+            home = [round(float(e), 3), round(float(n), 3)]
+        return {"mission": self.mission.state.value, "link_ok": self._inputs().connected,
+                "camera_ok": record.blind not in CAMERA_BLIND, "home_utm": home}
 
     def _resume(self, out: Path) -> None:
         """Find the checkpoint of a run that stopped a short while ago (a restart?)."""
@@ -395,6 +431,7 @@ class Service:
             self.counters["steps"] += 1
             self.counters["blind_steps"] += record.blind is not None
             step_json = record.to_json(self.pipeline.frame)
+            step_json.update(self._step_status(record))
             folder.write_step(step_json)
             state = self.pipeline.state
             if self.live is not None:

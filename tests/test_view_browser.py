@@ -21,14 +21,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from playwright.sync_api import Page
 
 from companion.run_folder import read_steps
 from companion.sim.scenario import load_scenario
 from sitl.cli import sitl_scenarios
-from sitl.demo import DemoResult, fly
+from sitl.demo import DemoResult, _latlon, fly
 from tests.browser import DOCS, InThread, chromium
+from tests.orthophotos import grass, write_geotiff
 
 pytestmark = [pytest.mark.sitl, pytest.mark.browser]
 
@@ -55,6 +57,7 @@ class Watched:
     moved_vehicle: tuple[float, float]
     stale_while_streaming: bool
     rows_at_end: list[dict[str, Any]]
+    orthophoto: dict[str, Any]  # the scene's, and the image's size as loaded
 
 
 def _vehicle(page: Page) -> tuple[float, float]:
@@ -72,6 +75,12 @@ def _watch(urls: queue.Queue[str]) -> Watched:
         page.goto(url + "?token=" + TOKEN)
         ws_url = url.replace("http://", "ws://") + "api/stream?token=not-the-token"
         stream_refused = page.evaluate(WS_REFUSED_JS, ws_url)
+        page.wait_for_function("() => { const i = document.querySelector('img.orthophoto');"
+                               " return i && i.complete && i.naturalWidth > 0; }",
+                               timeout=120_000)  # fetched with the token, like the data
+        ortho = page.evaluate("""() => ({scene: window.companionView.scene.orthophoto,
+            natural: [document.querySelector('img.orthophoto').naturalWidth,
+                      document.querySelector('img.orthophoto').naturalHeight]})""")
         page.wait_for_selector("#vehicle-pos[data-x]", timeout=120_000)
         first = _vehicle(page)
         page.wait_for_function(
@@ -87,7 +96,8 @@ def _watch(urls: queue.Queue[str]) -> Watched:
         # the mission ends, the service stops streaming: the page must say its data is stale
         page.wait_for_selector("#stale", state="visible", timeout=300_000)
         rows = page.eval_on_selector_all("tr[data-track-id]", ROWS_JS)
-        return Watched(missing.status, wrong.status, stream_refused, first, moved, stale, rows)
+        return Watched(missing.status, wrong.status, stream_refused, first, moved, stale, rows,
+                       ortho)
 
 
 @pytest.fixture(scope="module")
@@ -106,8 +116,14 @@ def mission(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[DemoResu
     watcher = InThread(lambda: _watch(urls)).start()
     s = load_scenario(sitl_scenarios()["field-5-tags"])
     scenario = dataclasses.replace(s, vehicle=dataclasses.replace(s.vehicle, flavour="px4"))
+    w, h = scenario.world.size_m
+    (lat, lon), = _latlon(scenario, np.array([[w / 2, h / 2]]))
+    step_deg = 3e-6  # about 0.23 m east, 0.33 m north: 136 m by 200 m of grass
+    photo = write_geotiff(out / "field.tif", grass(600, 600), 4326, lon - 300 * step_deg,
+                          lat + 300 * step_deg, step_deg, geographic=True)
     result = asyncio.run(fly(scenario, speedup=SPEEDUP, out_dir=out, announce=announce,
-                             view={"port": 0, "token_file": str(token_file)}))
+                             view={"port": 0, "token_file": str(token_file),
+                                   "orthophoto": str(photo)}))
     yield result, watcher.result(120)
 
 
@@ -127,6 +143,16 @@ def test_the_live_page_shows_the_service_s_targets_and_refuses_a_wrong_token(
         assert abs(row["lat"] - track.lat_deg) <= LAT_LON_DEG, row
         assert abs(row["lon"] - track.lon_deg) <= LAT_LON_DEG, row
         assert row["state"] == ("coasting" if track.coasting else "seen")
+
+
+def test_the_live_page_lays_the_orthophoto_under_the_map(
+        mission: tuple[DemoResult, Watched]) -> None:
+    _, watched = mission
+    scene = watched.orthophoto["scene"]
+    assert scene["name"] == "field.tif" and scene["url"] == "api/orthophoto.png"
+    assert watched.orthophoto["natural"] == scene["size_px"]
+    (west, south), (east, north) = scene["bounds"]
+    assert west < 0 and south < 0 and east > 20 and north > 20  # the area and its margin
 
 
 def test_the_vehicle_moves_on_the_page(mission: tuple[DemoResult, Watched]) -> None:

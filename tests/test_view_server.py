@@ -220,3 +220,30 @@ def test_token_files_are_checked(tmp_path: Path) -> None:
     path.write_text("short\n")
     with pytest.raises(ConfigError, match="at least 16"):
         load_token(path)
+
+
+def test_the_orthophoto_is_served_with_the_token_and_only_when_there_is_one() -> None:
+    png = b"\x89PNG\r\n\x1a\n" + bytes(range(256))  # the server serves the bytes it was given
+
+    async def body() -> None:
+        with_photo = await started(token=TOKEN, orthophoto_png=png)
+        without = await started()
+        try:
+            async with aiohttp.ClientSession() as s:
+                url = with_photo.url + "api/orthophoto.png"
+                async with s.get(url) as r:
+                    assert r.status == 401
+                async with s.get(url, params={"token": TOKEN}) as r:
+                    assert r.status == 200
+                    assert r.headers["Content-Type"] == "image/png"
+                    assert "Access-Control-Allow-Origin" not in r.headers
+                    assert await r.read() == png
+                async with s.post(url, params={"token": TOKEN}, data=b"x") as r:
+                    assert r.status == 405
+                async with s.get(without.url + "api/orthophoto.png") as r:
+                    assert r.status == 404
+        finally:
+            await with_photo.close()
+            await without.close()
+
+    run(body)

@@ -20,6 +20,7 @@ from companion.pipeline import SearchFrame
 from companion.sat.filter import SatState
 from companion.sat.tracks import TrackParams
 from companion.view.model import Status, Trails, Vehicle, encode, scene_message, step_message
+from companion.view.orthophoto import Orthophoto
 from companion.view.server import ViewServer, load_token
 
 __all__ = ["LiveView"]
@@ -29,14 +30,17 @@ class LiveView:
     """The view server of a flight and the trails its messages show."""
 
     def __init__(self, config: ServiceConfig, frame: SearchFrame, params: TrackParams,
-                 log: Callable[[str], None] = lambda _: None) -> None:
+                 log: Callable[[str], None] = lambda _: None, *,
+                 orthophoto: Orthophoto | None = None, notes: list[str] | None = None) -> None:
         v = config.view
         token = None if v.token_file is None else load_token(Path(v.token_file))
         scene = scene_message(frame, config.safety.geofence_latlon, mode="live",
                               rate_hz=config.estimator.rate_hz,
-                              expected_targets=config.search.expected_targets)
+                              expected_targets=config.search.expected_targets, notes=notes,
+                              orthophoto=None if orthophoto is None else orthophoto.scene())
         self.server = ViewServer(scene, bind=v.bind, port=v.port, token=token,
-                                 max_clients=v.max_clients, log=log)
+                                 max_clients=v.max_clients, log=log,
+                                 orthophoto_png=None if orthophoto is None else orthophoto.png)
         self.frame, self.params = frame, params
         self.trails = Trails()
         self.seq = 0

@@ -202,8 +202,10 @@ def _tracks(state: SatState | None, frame: SearchFrame, params: TrackParams,
 
 def scene_message(frame: SearchFrame, geofence_latlon: FloatArray | None, *, mode: str,
                   rate_hz: float, expected_targets: int | None, name: str = "",
-                  notes: list[str] | None = None) -> dict[str, Any]:
-    """What a page reads once: the grid (its UTM zone and origin), the area and the fence."""
+                  notes: list[str] | None = None,
+                  orthophoto: dict[str, Any] | None = None) -> dict[str, Any]:
+    """What a page reads once: the grid (its UTM zone and origin), the area, the fence and
+    the orthophoto's address and bounds (Orthophoto.scene(), or None)."""
     fence = None
     if geofence_latlon is not None and len(geofence_latlon):
         fence_latlon = np.asarray(geofence_latlon, dtype=np.float64)
@@ -214,7 +216,8 @@ def scene_message(frame: SearchFrame, geofence_latlon: FloatArray | None, *, mod
             "origin_utm": [_r(v, 3) for v in frame.origin_utm_m],
             "size_m": [_r(frame.world.width_m), _r(frame.world.height_m)],
             "area": _points(frame.area_xy_m), "geofence": fence, "rate_hz": rate_hz,
-            "expected_targets": expected_targets, "notes": notes or []}
+            "expected_targets": expected_targets, "notes": notes or [],
+            "orthophoto": orthophoto}
 
 
 def step_message(seq: int, frame: SearchFrame, state: SatState | None, record: dict[str, Any],

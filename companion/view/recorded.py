@@ -4,7 +4,11 @@
 image is decoded) with the run's configuration and camera, so that every step shows the
 estimate as it was then. A run folder of an earlier version without its configuration or
 camera, or without step inputs, still opens: its steps show the path, footprints and
-detections, and its last step the confirmed tracks of tracks.csv.
+detections, and its last step the confirmed tracks of tracks.csv. Each step shows the mission
+state, link and camera health the service recorded with it (`mission`, `link_ok`, `camera_ok`,
+`home_utm` in steps.jsonl); a folder of an earlier version has none, and the page says so.
+The orthophoto is the one given (a bad file is an error) or the run's configuration's (a bad
+or missing one is a warning: the run opens without it).
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ from numpy.typing import NDArray
 
 from companion.config import ServiceConfig
 from companion.drive import observe
-from companion.errors import CompanionError, InputError
+from companion.errors import CompanionError, ConfigError, InputError
 from companion.geo import Utm
 from companion.pipeline import Pipeline, SearchFrame
 from companion.plan.world import World
@@ -37,6 +41,7 @@ from companion.view.model import (
     step_message,
     yaw_deg,
 )
+from companion.view.orthophoto import Orthophoto, load_orthophoto
 from companion.vision.camera import CameraModel
 
 __all__ = ["RecordedView", "recorded_view"]
@@ -46,11 +51,13 @@ FloatArray = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class RecordedView:
-    """A run's scene and its step messages (each zlib-compressed JSON), with any warnings."""
+    """A run's scene and its step messages (each zlib-compressed JSON), with any warnings,
+    and the orthophoto the scene names."""
 
     scene: dict[str, Any]
     steps: list[bytes]
     warnings: list[str]
+    orthophoto: Orthophoto | None = None
 
 
 def _pack(message: dict[str, Any]) -> bytes:
@@ -67,10 +74,42 @@ def _vehicle(frame: SearchFrame, step_input: dict[str, Any]) -> Vehicle | None:
     return Vehicle((float(xy[0]), float(xy[1])), yaw_deg(pose[4:8]), float(pose[3]))
 
 
+def _status(frame: SearchFrame, record: dict[str, Any], counters: dict[str, int],
+            home_xy: tuple[float, float] | None) -> Status:
+    """The service's status a step recorded (None where the run folder's version kept none);
+    home as recorded, else home_xy."""
+    home_en = record.get("home_utm")
+    if home_en:
+        xy = frame.from_utm(np.asarray(home_en, dtype=np.float64))
+        home_xy = (float(xy[0]), float(xy[1]))
+    mission, link_ok, camera_ok = (record.get(k) for k in ("mission", "link_ok", "camera_ok"))
+    return Status(mission if isinstance(mission, str) else None,
+                  link_ok if isinstance(link_ok, bool) else None,
+                  camera_ok if isinstance(camera_ok, bool) else None, counters, home_xy)
+
+
+def _orthophoto(frame: SearchFrame, fence: FloatArray | None, given: Path | None,
+                config: ServiceConfig | None, warnings: list[str]) -> Orthophoto | None:
+    """The orthophoto given (ConfigError naming --orthophoto if it is bad), else the one of
+    the configuration (a warning if it is bad or missing), else None."""
+    if given is not None:
+        return load_orthophoto(given, frame, fence, key="--orthophoto")
+    path = None if config is None else config.view.orthophoto
+    if path is None:
+        return None
+    try:
+        return load_orthophoto(Path(path), frame, fence)
+    except ConfigError as exc:
+        warnings.append(f"The run's orthophoto is not shown: {exc}")
+        return None
+
+
 def recorded_view(run_dir: Path, config: ServiceConfig | None = None,
-                  camera: CameraModel | None = None) -> RecordedView:
-    """The view of run_dir (config, camera: instead of the run's own); InputError names what
-    is wrong with a folder that is not a run folder."""
+                  camera: CameraModel | None = None,
+                  orthophoto: Path | None = None) -> RecordedView:
+    """The view of run_dir (config, camera: instead of the run's own; orthophoto: instead of
+    the configuration's); InputError names what is wrong with a folder that is not a run
+    folder, ConfigError a bad orthophoto given."""
     if not run_dir.is_dir():
         raise InputError(f"{run_dir}: no such run folder")
     if not (run_dir / STEPS).is_file():
@@ -85,24 +124,26 @@ def recorded_view(run_dir: Path, config: ServiceConfig | None = None,
     except (CompanionError, OSError, ValueError) as exc:
         warnings.append(f"the run's configuration or camera cannot be read ({exc}): its steps "
                         "are shown as recorded, the tracks of tracks.csv at the last step")
-        return _as_recorded(run_dir, records, warnings)
+        return _as_recorded(run_dir, records, warnings, orthophoto=orthophoto)
     if not all("input" in r for r in records):
         warnings.append(f"{STEPS} was written by a version that kept no step inputs: its "
                         "steps are shown as recorded, the tracks of tracks.csv at the last step")
-        return _as_recorded(run_dir, records, warnings, config)
+        return _as_recorded(run_dir, records, warnings, config, orthophoto)
     pipeline = Pipeline(config, camera)
     frame, params = pipeline.frame, pipeline.params.tracks
-    scene = scene_message(frame, config.safety.geofence_latlon, mode="replay",
-                          rate_hz=config.estimator.rate_hz,
+    fence = config.safety.geofence_latlon
+    ortho = _orthophoto(frame, fence, orthophoto, config, warnings)
+    scene = scene_message(frame, fence, mode="replay", rate_hz=config.estimator.rate_hz,
                           expected_targets=config.search.expected_targets, name=run_dir.name,
-                          notes=warnings)
+                          notes=warnings, orthophoto=None if ortho is None else ortho.scene())
+    scene["notes"] = warnings
     inputs = [(r["input"], r.get("blind")) for r in records]
     trails, counters = Trails(), {"steps": 0, "blind_steps": 0, "frames_used": 0}
     steps: list[bytes] = []
     times: list[float] = []
     last_vehicle: Vehicle | None = None
-    for (step_input, _), obs in zip(inputs, recorded_observations(run_dir, inputs, False, []),
-                                    strict=True):
+    for recorded, (step_input, _), obs in zip(
+            records, inputs, recorded_observations(run_dir, inputs, False, []), strict=True):
         record = observe(pipeline, obs).to_json(frame)
         vehicle = _vehicle(frame, step_input) or last_vehicle  # a blind step: where it was
         last_vehicle = vehicle
@@ -114,14 +155,13 @@ def recorded_view(run_dir: Path, config: ServiceConfig | None = None,
         counters = {"steps": counters["steps"] + 1,
                     "blind_steps": counters["blind_steps"] + (record["blind"] is not None),
                     "frames_used": counters["frames_used"] + (record["blind"] is None)}
-        home = trails.path[0] if trails.path else None
+        status = _status(frame, recorded, counters, trails.path[0] if trails.path else None)
         steps.append(_pack(step_message(len(steps) + 1, frame, pipeline.state, record, trails,
-                                        params, vehicle, Status(counters=counters,
-                                                                home_xy_m=home))))
+                                        params, vehicle, status)))
         times.append(record["t_s"])
     scene["steps"] = len(steps)
     scene["times_s"] = [round(t, 3) for t in times]
-    return RecordedView(scene, steps, warnings)
+    return RecordedView(scene, steps, warnings, ortho)
 
 
 def _epsg(run_dir: Path, config: ServiceConfig | None) -> int:
@@ -166,7 +206,8 @@ def _final_tracks(run_dir: Path, frame: SearchFrame) -> list[dict[str, Any]]:
 
 
 def _as_recorded(run_dir: Path, records: list[dict[str, Any]], warnings: list[str],
-                 config: ServiceConfig | None = None) -> RecordedView:
+                 config: ServiceConfig | None = None,
+                 orthophoto: Path | None = None) -> RecordedView:
     """The view of the steps as recorded: no estimate but the final tracks."""
     utm = Utm(_epsg(run_dir, config))
     if config is not None:
@@ -181,9 +222,12 @@ def _as_recorded(run_dir: Path, records: list[dict[str, Any]], warnings: list[st
         box = np.array([[0.0, 0.0], [size[0], 0.0], [size[0], size[1]], [0.0, size[1]]])
         frame = SearchFrame(utm, origin, World(float(size[0]), float(size[1])), box)
     geofence = None if config is None else config.safety.geofence_latlon
+    ortho = _orthophoto(frame, geofence, orthophoto, config, warnings)
     scene = scene_message(frame, geofence, mode="replay",
                           rate_hz=2.0 if config is None else config.estimator.rate_hz,
-                          expected_targets=None, name=run_dir.name, notes=warnings)
+                          expected_targets=None, name=run_dir.name, notes=warnings,
+                          orthophoto=None if ortho is None else ortho.scene())
+    scene["notes"] = warnings
     trails, steps, times = Trails(), list[bytes](), list[float]()
     final = _final_tracks(run_dir, frame)
     params = TrackParams()
@@ -199,11 +243,12 @@ def _as_recorded(run_dir: Path, records: list[dict[str, Any]], warnings: list[st
         t_s = float(record.get("t_s", k))
         trails = trails.after(t_s, xy, detections, record.get("blind"), None)
         message = step_message(k + 1, frame, None, record, trails, params,
-                               None if xy is None else Vehicle(xy), Status())
+                               None if xy is None else Vehicle(xy),
+                               _status(frame, record, {}, None))
         if k == len(records) - 1:
             message["tracks"] = final
         steps.append(_pack(message))
         times.append(round(t_s, 3))
     scene["steps"] = len(steps)
     scene["times_s"] = times
-    return RecordedView(scene, steps, warnings)
+    return RecordedView(scene, steps, warnings, ortho)

@@ -2,8 +2,9 @@
 
 `ViewServer` runs inside the caller's asyncio event loop (aiohttp). Live, `publish` hands each
 connected page the newest step message over a WebSocket (`/api/stream`); a replay serves its
-recorded steps by index (`/api/step/K`). Nothing it serves changes anything: only GET (and HEAD)
-routes exist, requests carry no body.
+recorded steps by index (`/api/step/K`). An operator's orthophoto, made once at start-up, is
+served as a PNG (`/api/orthophoto.png`; 404 when there is none). Nothing it serves changes
+anything: only GET (and HEAD) routes exist, requests carry no body.
 
 Security: with a token (`view.token_file`), every route but the static files needs it (the
 query's `token=` or an `Authorization: Bearer` header), compared in constant time and never
@@ -127,6 +128,7 @@ class ViewServer:
     def __init__(self, scene: dict[str, Any], *, bind: str = "127.0.0.1", port: int = 0,
                  token: str | None = None, max_clients: int = 8,
                  steps: Sequence[bytes] | None = None,
+                 orthophoto_png: bytes | None = None,
                  log: Callable[[str], None] = lambda _: None,
                  address_keys: tuple[str, str] = ("view.bind", "view.port")) -> None:
         self.scene = scene
@@ -134,6 +136,7 @@ class ViewServer:
         self._token = token
         self.max_clients = max_clients
         self._steps = steps  # a replay's messages, each zlib-compressed JSON
+        self._orthophoto = orthophoto_png
         self._log = log
         self._address_keys = address_keys  # what a bad address is reported under
         self.stats = ServerStats()
@@ -158,6 +161,7 @@ class ViewServer:
         app.router.add_get("/api/scene", self._scene)
         app.router.add_get("/api/stream", self._stream)
         app.router.add_get("/api/step/{index}", self._step)
+        app.router.add_get("/api/orthophoto.png", self._orthophoto_png)
         app.router.add_static("/static/", Path(str(STATIC)), follow_symlinks=False)
         runner = web.AppRunner(app, access_log=None, handle_signals=False)
         await runner.setup()
@@ -255,6 +259,13 @@ class ViewServer:
                                                  f"{len(self._steps)}\n")
         return web.Response(body=zlib.decompress(self._steps[index]),
                             content_type="application/json")
+
+    async def _orthophoto_png(self, request: web.Request) -> web.Response:
+        if not self._authorized(request):
+            return self._refuse()
+        if self._orthophoto is None:
+            return web.Response(status=404, text="no orthophoto is configured\n")
+        return web.Response(body=self._orthophoto, content_type="image/png")
 
     def _same_origin(self, request: web.Request) -> bool:
         origin = request.headers.get("Origin")

@@ -17,7 +17,13 @@
     crs: L.CRS.Simple, preferCanvas: true, minZoom: -4, maxZoom: 7, zoomSnap: 0.25,
     attributionControl: false,
   });
+  state.map = map;  // for scripts and tests: where the page draws what
   L.control.scale({ imperial: false, metric: true }).addTo(map);
+  // the operator's orthophoto lies in a pane of its own, under every other layer
+  map.createPane("ortho");
+  map.getPane("ortho").style.zIndex = 350;
+  map.getPane("ortho").style.pointerEvents = "none";
+  let orthoOverlay = null;
   const layers = {};
   for (const name of ["grid", "heat", "fence", "area", "footprint", "path", "components",
                       "scans", "tracks", "labels", "home", "vehicle"]) {
@@ -44,8 +50,32 @@
     return out;
   }
 
+  function drawOrtho(ortho) {
+    // the orthophoto of the scene (its PNG and its bounds in grid metres), with its toggle
+    if (orthoOverlay) { map.removeLayer(orthoOverlay); orthoOverlay = null; }
+    $("ortho-toggle").hidden = !ortho;
+    state.ortho = ortho || null;
+    if (!ortho) return;
+    const [[w, s], [e, n]] = ortho.bounds;
+    orthoOverlay = L.imageOverlay(ortho.url + query, L.latLngBounds([ll(w, s), ll(e, n)]), {
+      pane: "ortho", interactive: false, alt: `orthophoto ${ortho.name}`, className: "orthophoto",
+    });
+    orthoOverlay.on("add", () => {  // the image exists once the map has a view
+      const img = orthoOverlay.getElement();
+      img.dataset.west = String(w); img.dataset.south = String(s);
+      img.dataset.east = String(e); img.dataset.north = String(n);
+    });
+    if ($("ortho-on").checked) orthoOverlay.addTo(map);
+  }
+
+  $("ortho-on").addEventListener("change", () => {
+    if (!orthoOverlay) return;
+    if ($("ortho-on").checked) orthoOverlay.addTo(map); else map.removeLayer(orthoOverlay);
+  });
+
   function drawScene(scene) {
     state.scene = scene;
+    drawOrtho(scene.orthophoto);
     layers.grid.clearLayers(); layers.area.clearLayers(); layers.fence.clearLayers();
     const [w, h] = scene.size_m;
     const step = Math.max(w, h) > 200 ? 50 : 10;
@@ -148,9 +178,11 @@
   function drawStep(m) {
     state.message = m;
     document.body.dataset.seq = String(m.seq);
-    chip("mission", m.mission || (state.scene && state.scene.mode === "replay" ? "replay" : "–"), null);
-    chip("link", m.link_ok === false ? "link lost" : m.link_ok ? "link ok" : "link –", m.link_ok);
-    chip("camera", m.camera_ok === false ? "camera: no picture" : m.camera_ok ? "camera ok" : "camera –", m.camera_ok);
+    // a replay of a run folder of an earlier version: its steps recorded no status
+    const unknown = state.scene && state.scene.mode === "replay" ? " not recorded" : " –";
+    chip("mission", m.mission || "mission" + unknown, null);
+    chip("link", m.link_ok === false ? "link lost" : m.link_ok ? "link ok" : "link" + unknown, m.link_ok);
+    chip("camera", m.camera_ok === false ? "camera: no picture" : m.camera_ok ? "camera ok" : "camera" + unknown, m.camera_ok);
     chip("clock", `t ${m.t_s.toFixed(1)} s${m.blind ? " · blind: " + m.blind : ""}`, m.blind ? false : null);
     const expected = state.scene && state.scene.expected_targets;
     chip("expected", `targets ≈ ${m.expected_targets.toFixed(1)}${expected ? " of " + expected : ""}`, null);
