@@ -2,7 +2,9 @@
 
 `run_study` runs each shipped `paper-*` scenario for seeds 1..N on worker processes (one per core
 by default), prints the paper's tables with our mean and spread over seeds next to the paper's
-numbers, and writes them (Markdown and CSV) with the plots under the output directory.
+numbers, and writes them (Markdown and CSV) with the plots under the output directory. With
+planners named, it also flies the lawn-mower experiments with each of them on the same seeds
+and writes planners.md with its figures (`companion.sim.planner_study`).
 """
 
 from __future__ import annotations
