@@ -206,3 +206,11 @@ def test_planners_need_a_lawn_mower_experiment(capsys: pytest.CaptureFixture[str
     assert main(["study", "--only", "paper-largest", "--planners", SEARCH]) == 2
     err = capsys.readouterr().err
     assert "--planners" in err and "Traceback" not in err
+
+
+def test_the_study_help_names_every_planner(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["study", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for planner in PLANNERS:
+        assert planner in text
