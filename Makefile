@@ -1,6 +1,7 @@
 # Entry points (see README.md): `make run` (the main job: the service flies the SITL field
 # experiment), `make test` (the test suite), `make check` (lint, types and the tests that fly
-# no SITL mission and start no browser: the fast tier), `make study` (the paper's simulation study),
+# no SITL mission and start no browser: the fast tier), `make study` (the paper's simulation study;
+# `make study PLANNERS=lawnmower,search-track` adds the planners side by side),
 # `make reliability` (the fault, security and load tests, then docs/reliability.md),
 # `make lock` (regenerates requirements/onboard.lock, the hashed onboard install).
 # Each creates and fills the virtual environment .venv when it is missing or out of date.
@@ -10,6 +11,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 SEEDS ?= 10
 OUT ?= out/study
+PLANNERS ?=
 
 LOCK := requirements/onboard.lock
 LOCK_VENV ?= /tmp/companion-lock-venv
@@ -28,7 +30,7 @@ run: $(STAMP)
 	$(BIN)/companion-demo field-5-tags --out out/sitl
 
 study: $(STAMP)
-	$(BIN)/companion study --seeds $(SEEDS) --out $(OUT)
+	$(BIN)/companion study --seeds $(SEEDS) --out $(OUT) $(if $(PLANNERS),--planners $(PLANNERS))
 
 test: $(STAMP)
 	@command -v systemd-analyze >/dev/null || { apt-get update -qq && apt-get install -y -qq systemd >/dev/null; }

@@ -56,12 +56,14 @@ def _simulate(args: argparse.Namespace) -> int:
 
 def _study(args: argparse.Namespace) -> int:
     from companion.sim.engine import check_scheduler_address
+    from companion.sim.planner_study import parse_planners
     from companion.sim.study import run_study
 
     if args.scheduler is not None:
         check_scheduler_address(args.scheduler)
+    planners = [] if args.planners is None else parse_planners(args.planners)
     run_study(seeds=args.seeds, out_dir=args.out, jobs=args.jobs, only=args.only, steps=args.steps,
-              scheduler=args.scheduler, kinds=_kinds(args.kinds))
+              scheduler=args.scheduler, kinds=_kinds(args.kinds), planners=planners)
     return EXIT_OK
 
 
@@ -342,6 +344,11 @@ def build_parser() -> argparse.ArgumentParser:
                        help="estimators to run side by side (gmphd, lmb; default both)")
     study.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
                        help="run on this dask.distributed scheduler instead of local processes")
+    study.add_argument("--planners", default=None, metavar="PLANNER,...",
+                       help="also fly the lawn-mower experiments with these planners, the same "
+                            "seeds, into planners.md and figures (lawnmower, nearest-gaussian, "
+                            "largest-gaussian, search-track; e.g. lawnmower,search-track; "
+                            "default: none, the paper's study only)")
     study.set_defaults(run=_study)
 
     battery = sub.add_parser(

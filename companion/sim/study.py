@@ -2,7 +2,9 @@
 
 `run_study` runs each shipped `paper-*` scenario for seeds 1..N on worker processes (one per core
 by default), prints the paper's tables with our mean and spread over seeds next to the paper's
-numbers, and writes them (Markdown and CSV) with the plots under the output directory.
+numbers, and writes them (Markdown and CSV) with the plots under the output directory. With
+planners named, it also flies the lawn-mower experiments with each of them on the same seeds
+and writes planners.md with its figures (`companion.sim.planner_study`).
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.errors import CompanionError
+from companion.errors import CompanionError, ConfigError
 from companion.progress import progress_bar
 from companion.sat.filter import FilterKind
 from companion.scenario_lookup import resolve_scenario
@@ -27,7 +29,7 @@ from companion.sim.engine import run_tasks
 FloatArray = NDArray[np.float64]
 
 SERIES = ("tracks_confirmed", "weight_sum", "components", "ospa", "mahal_closest_mean",
-          "max_track_var_m2")
+          "max_track_var_m2", "gospa")
 
 
 @dataclass(frozen=True, slots=True)
@@ -98,25 +100,41 @@ STONE_SOUP_OSPA_TAIL = 48.6
 
 def run_one(
     scenario: str, seed: int, plot_dir: Path | None, steps: int | None = None,
-    kind: str = "gmphd",
+    kind: str = "gmphd", planner: str | None = None, keep_path: bool = False,
 ) -> dict[str, Any]:
-    """Simulate one shipped scenario with one seed and estimator kind; its summary and time
-    series (a worker task).
+    """Simulate one shipped scenario with one seed, estimator kind and planner; its summary and
+    time series, and its flown path when asked (a worker task).
 
     `steps` shortens every run to that many steps (a quick look, not the study's figures).
+    `planner` replaces the scenario's robot.planner (the run is then named
+    `<scenario>-<planner>`); `keep_path` adds "path", the run's `FlownPath`.
     """
+    from companion.plan.planners import PlannerKind
     from companion.sim.run import simulate
     from companion.sim.scenario import load_scenario
 
     loaded = load_scenario(resolve_scenario(scenario), seed=seed)
     loaded = replace(loaded, filter=replace(loaded.filter, kind=FilterKind(kind)))
+    if planner is not None:
+        loaded = replace(loaded, name=f"{loaded.name}-{planner}",
+                         robot=replace(loaded.robot, planner=PlannerKind(planner)))
     result = simulate(loaded if steps is None else replace(loaded, steps=steps))
     if plot_dir is not None:
         from companion.sim.plots import plot_run
 
         plot_run(result, plot_dir)
     series = {name: np.asarray(getattr(result, name), dtype=np.float32) for name in SERIES}
-    return {"summary": result.summary(), "series": series, "t_s": result.t_s.astype(np.float32)}
+    summary = result.summary()
+    out = {"summary": summary, "series": series, "t_s": result.t_s.astype(np.float32)}
+    if keep_path:
+        from companion.sim.path_plots import flown_path
+
+        t_all = summary["t_all_confirmed_s"]
+        found = "never all confirmed" if t_all is None else f"all confirmed at {t_all:.0f} s"
+        out["path"] = flown_path(result, f"{loaded.robot.planner}: {found}\n"
+                                         f"{summary['tracks_confirmed']} tracks, "
+                                         f"{summary['true_count']} targets at the end")
+    return out
 
 
 @dataclass(frozen=True, slots=True)
@@ -356,31 +374,52 @@ def run_study(
     steps: int | None = None,
     scheduler: str | None = None,
     kinds: Sequence[str] = ("gmphd",),
+    planners: Sequence[str] = (),
 ) -> dict[str, Runs]:
     """Run every experiment for seeds 1..seeds with each estimator kind, print and write the
     tables and plots (under out_dir/KIND when there are several kinds, with kinds.md beside).
 
-    The runs go to `jobs` local worker processes, or to the dask scheduler at `scheduler`.
+    With `planners`, each lawn-mower experiment is also flown by every other planner named, on
+    the same seeds, and planners.md with its figures is written beside each kind's tables
+    (`companion.sim.planner_study`). The runs go to `jobs` local worker processes, or to the
+    dask scheduler at `scheduler`.
     """
+    from companion.sim.planner_study import (
+        BASELINE,
+        is_lawnmower_experiment,
+        parse_planners,
+        write_planner_outputs,
+    )
+
     experiments = [e for e in ALL if only is None or only in e.scenario]
     if not experiments:
         raise CompanionError(f"--only {only!r} matches no experiment")
+    planners = parse_planners(",".join(planners)) if planners else []
+    flown = [e.scenario for e in experiments if is_lawnmower_experiment(e.scenario)]
+    if planners and not flown:
+        raise ConfigError("--planners", f"--only {only!r} selects no lawn-mower experiment to "
+                          "fly with other planners")
     several = len(kinds) > 1
-    tasks = [(e.scenario, seed, kind) for kind in kinds for e in experiments
-             for seed in range(1, seeds + 1)]
+    tasks: list[tuple[str, int, str, str | None]] = [
+        (e.scenario, seed, kind, None) for kind in kinds for e in experiments
+        for seed in range(1, seeds + 1)]
+    tasks += [(name, seed, kind, planner) for kind in kinds for planner in planners
+              if planner != BASELINE for name in flown for seed in range(1, seeds + 1)]
     dirs = {kind: out_dir / kind if several else out_dir for kind in kinds}
     for path in dirs.values():
         (path / "runs").mkdir(parents=True, exist_ok=True)
     with progress_bar("study", "run") as bar:
         outputs = run_tasks(
             run_one,
-            [(name, seed, dirs[kind] / "runs" if seed == 1 else None, steps, kind)
-             for name, seed, kind in tasks],
+            [(name, seed, dirs[kind] / "runs" if seed == 1 else None, steps, kind, planner,
+              bool(planners) and seed == 1 and name in flown)
+             for name, seed, kind, planner in tasks],
             jobs, scheduler, bar.update_to,
         )
     results = dict(zip(tasks, outputs, strict=True))
     by_kind = {
-        kind: Runs({e.scenario: [results[(e.scenario, s, kind)] for s in range(1, seeds + 1)]
+        kind: Runs({e.scenario: [results[(e.scenario, s, kind, None)]
+                                 for s in range(1, seeds + 1)]
                     for e in experiments})
         for kind in kinds
     }
@@ -396,6 +435,17 @@ def run_study(
                 print(f"{e.scenario}: " + ", ".join(
                     f"{key}={_fmt(runs.values(e.scenario, key))}"
                     for key in ("tracks_confirmed", "mahal_closest_mean", "ospa_tail_mean")))
+        if planners:
+            by_planner = {
+                (name, planner): [results[(name, s, kind, None if planner == BASELINE
+                                           else planner)] for s in range(1, seeds + 1)]
+                for name in flown for planner in (BASELINE, *planners)
+            }
+            markdown, figures = write_planner_outputs(by_planner, flown, planners, seeds,
+                                                      dirs[kind], steps)
+            print(markdown)
+            print(f"wrote {dirs[kind] / 'planners.md'} and {len(figures)} figures beside it",
+                  file=sys.stderr)
     if several:
         side_by_side = kinds_table(by_kind)
         print(side_by_side)
