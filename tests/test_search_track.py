@@ -283,3 +283,18 @@ def test_the_battery_flies_it_beside_the_lawn_mower() -> None:
     assert plain.robot.planner == PlannerKind.LAWNMOWER
     assert flown.robot.planner == PlannerKind.SEARCH_TRACK
     assert flown.filter == plain.filter and flown.targets == plain.targets
+
+
+def test_a_sweep_point_is_flown_to_until_reached_not_swapped_for_a_nearer_one() -> None:
+    """The sweep's next point is a goal like any other: moving away from it (say, to look at a
+    track) does not make the planner swap it for whichever fresh point is now nearest, which let
+    the robot hover between a far sweep point and the tracks beside it."""
+    planner = make_search_track(WORLD, PARAMS)
+    here = np.array([75.0, 75.0])
+    goal, progress = planner.next_waypoint(here, Mixture.empty(), NO_TRACKS, WORLD, 0, 0.0)
+    assert goal is not None and np.hypot(*(goal - here)) > 1.0
+    away = here - 30.0 * (goal - here) / np.hypot(*(goal - here))
+    fresh_nearer = planner.next_waypoint(away, Mixture.empty(), NO_TRACKS, WORLD, 0, 0.0)[0]
+    assert fresh_nearer is not None and not np.allclose(fresh_nearer, goal)  # afresh: another
+    again, _ = planner.next_waypoint(away, Mixture.empty(), NO_TRACKS, WORLD, progress, 1.0)
+    assert again is not None and np.allclose(again, goal)

@@ -21,12 +21,12 @@ look at the cell (a look: the cell enters the sensor's sure view, or stays in it
 
 all in one unit, expected targets. The plan is the order of the best `goals` goals that maximises
 the sum of value x exp(-distance flown to it / horizon) (every order tried), and the waypoint is
-its first goal; when that is the sweep's next point, the robot goes on with the sweep (replanned
-at every call, as a lawn mower that skips what was seen). Another goal is flown to until it is
-reached, gone, or worth less than half what it was planned at, unless a goal worth much more turns
-up, so that the robot neither dithers between goals whose values change as it flies nor nibbles
-at small near goals for ever. Components in the sure view now are not goals: the sensor is
-looking at them.
+its first goal. A goal, the sweep's next point too, is flown to until it is reached, gone (a sweep
+point whose cells have all been looked at), or worth less than half what it was planned at,
+unless a goal worth much more turns up, so that the robot neither dithers between goals whose
+values change as it flies nor nibbles at small near goals for ever (a sweep point replanned at
+every call let the robot hover between a far sweep point and the tracks near it). Components in
+the sure view now are not goals: the sensor is looking at them.
 """
 
 from __future__ import annotations
@@ -247,8 +247,9 @@ class SearchTrack:
         self, robot_xy: FloatArray, memory: SearchProgress, unseen: FloatArray
     ) -> tuple[FloatArray, FloatArray]:
         """The nearest sweep point with a cell not yet looked at (the first in lawn-mower order
-        among equally near ones), valued by the unseen mass that it and the `goals` - 1 next
-        nearest such points would look at (what going on with the sweep finds)."""
+        among equally near ones; the one being flown to while it has such a cell), valued by the
+        unseen mass that it and the `goals` - 1 next nearest such points would look at (what
+        going on with the sweep finds)."""
         fresh = memory.looks[self.cell_of_pair] == 0
         n = self.sweep_xy.shape[0]
         count = np.bincount(self.sweep_of_pair[fresh], minlength=n)
@@ -259,6 +260,8 @@ class SearchTrack:
         if fresh_points.size == 0:
             return np.zeros((0, 2)), np.zeros(0)
         dist = np.hypot(*(self.sweep_xy[fresh_points] - robot_xy).T)
+        if memory.goal_xy is not None:  # the sweep point being flown to, while it is fresh
+            dist[np.hypot(*(self.sweep_xy[fresh_points] - memory.goal_xy).T) < 1e-9] = -1.0
         nxt = fresh_points[np.argsort(dist, kind="stable")[: self.params.goals]]
         return self.sweep_xy[nxt[:1]], np.array([float(value[nxt].sum())])
 
@@ -284,21 +287,18 @@ class SearchTrack:
         sweep's next point."""
         worth = values > 1e-6
         goals_xy, values = self._into_area(goals_xy[worth]), values[worth]
-        tour_xy, tour_values = self._follow(robot_xy, goals_xy, values, memory)
+        cand_xy = np.vstack([goals_xy, sweep_xy])
+        cand_values = np.concatenate([values, sweep_value])
+        tour_xy, tour_values = self._follow(robot_xy, cand_xy, cand_values, memory)
         stale = values.size and values.max() > max(INTERRUPT_VALUE,
                                                    INTERRUPT_RATIO * tour_values.max(initial=0.0))
         if tour_xy.shape[0] and not stale:
             return replace(memory, goal_xy=tour_xy[0], tour_xy=tour_xy, tour_values=tour_values)
-        cand_xy = np.vstack([goals_xy, sweep_xy])
-        cand_values = np.concatenate([values, sweep_value])
         if cand_values.size == 0:
             return replace(memory, goal_xy=None, tour_xy=np.zeros((0, 2)), tour_values=np.zeros(0))
         near = cand_values * np.exp(-np.hypot(*(cand_xy - robot_xy).T) / self.horizon_m)
         top = np.argsort(-near, kind="stable")[: self.params.goals]
         order = top[best_order(robot_xy, cand_xy[top], cand_values[top], self.horizon_m)]
-        if order[0] >= values.size:  # go on with the sweep, replanned at every call
-            return replace(memory, goal_xy=cand_xy[order[0]], tour_xy=np.zeros((0, 2)),
-                           tour_values=np.zeros(0))
         keep = order[:COMMIT_GOALS]
         return replace(memory, goal_xy=cand_xy[keep[0]], tour_xy=cand_xy[keep],
                        tour_values=cand_values[keep])
