@@ -1,17 +1,18 @@
 """Soak study: a long SITL mission with moving targets and clutter, watched for leaks and jitter.
 
-The companion service flies the `soak-30-targets` scenario (sitl/scenarios/) in this process
-with the mock autopilot and the rendered camera, searching by lawn mower for --minutes simulated
-minutes, then landing. It prints: the simulated and wall durations and the speed-up achieved;
-the process's RSS (peak, and the slope of a least-squares line through the samples after the
-first 20 %, in MB per simulated hour); the filter's component count against its cap; the
-setpoint stream's intervals in simulated time as the service sent them (events.jsonl) and as
-the autopilot received them (median, p99, max gap, and the gaps over 1.5 periods: the target is
-none) and how late the event loop woke; the size of the estimator's checkpoint; the blind
-estimator steps; how the mission went; the confirmed tracks against the truth at the end.
+The companion service flies the `soak-30-targets` scenario (sitl/scenarios/) in this process with
+the mock autopilot and the rendered camera, searching by lawn mower (or the --planner given) for
+--minutes simulated minutes, then landing. It prints: the simulated and wall durations and the
+speed-up achieved; the process's RSS (peak, and the slope of a least-squares line through the
+samples after the first 20 %, in MB per simulated hour); the filter's component count against its
+cap; the setpoint stream's intervals in simulated time as the service sent them (events.jsonl) and
+as the autopilot received them (median, p99, max gap, and the gaps over 1.5 periods: the target is
+none) and how late the event loop woke; the size of the estimator's checkpoint; the blind estimator
+steps; how the mission went; the confirmed tracks against the truth at the end.
 
     python benchmarks/soak.py [--minutes 30] [--speedup 4] [--targets 30] [--clutter 0.2]
                               [--out DIR] [--rss-every 10] [--seed N] [--pilot-resumes]
+                              [--planner lawnmower|search-track]
 
 The SITL's clock is the wall clock times the speed-up, whether or not the process gets the CPU,
 so on a busy machine a stall of 0.8 s / speed-up of wall time already looks like a lost link to
@@ -260,6 +261,7 @@ class SoakOptions:
     seed: int | None = None  # None: the scenario's
     stop_margin_s: float = 120.0  # a mission not over this long after the time limit is stopped
     pilot_resumes: bool = False  # a pilot selects OFFBOARD again when the search has stopped
+    planner: str = "lawnmower"  # search.planner: lawnmower or search-track
 
 
 def soak_scenario(targets: int, clutter_per_frame: float, seed: int | None = None) -> Scenario:
@@ -427,7 +429,8 @@ def _open_fds() -> int:
 def _overrides(scenario: Scenario, options: SoakOptions) -> dict[str, dict[str, Any]]:
     """The service configuration tables the soak changes (on top of sitl/service.toml)."""
     return {
-        "search": {"sweeps": _sweeps_needed(scenario, options.search_s)},
+        "search": {"sweeps": _sweeps_needed(scenario, options.search_s),
+                   "planner": options.planner},
         "mission": {"end": "time", "time_limit_s": options.search_s, "end_action": "land"},
         "estimator": {"clutter_per_scan": options.clutter_per_frame},
         "output": {"plots": False},
@@ -660,6 +663,8 @@ def main() -> None:
     parser.add_argument("--rss-every", type=float, default=10.0,
                         help="simulated seconds between RSS samples")
     parser.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
+    parser.add_argument("--planner", choices=("lawnmower", "search-track"), default="lawnmower",
+                        help="the search planner (search.planner)")
     parser.add_argument("--pilot-resumes", action="store_true",
                         help="a pilot selects OFFBOARD again whenever the search stopped mid-air")
     args = parser.parse_args()
@@ -667,13 +672,14 @@ def main() -> None:
     options = SoakOptions(search_s=60.0 * args.minutes, speedup=args.speedup,
                           targets=args.targets, clutter_per_frame=args.clutter,
                           out_dir=args.out, rss_every_s=args.rss_every, seed=args.seed,
-                          pilot_resumes=args.pilot_resumes)
+                          pilot_resumes=args.pilot_resumes, planner=args.planner)
     print(f"soak: {args.minutes:g} simulated minutes of search at {args.speedup:g}x, "
           f"about {(60.0 * args.minutes + 45.0) / args.speedup / 60.0:.1f} min wall", flush=True)
     report = soak(options)
     for line in report_lines(report):
         print(line, flush=True)
-    record_figure(f"soak-{args.minutes:g}min", **soak_figures(report))
+    suffix = "" if args.planner == "lawnmower" else f"-{args.planner}"
+    record_figure(f"soak-{args.minutes:g}min{suffix}", **soak_figures(report))
 
 
 if __name__ == "__main__":
