@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import contextlib
+import json
+import subprocess
+import sys
 import tempfile
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from playwright.sync_api import BrowserContext, sync_playwright
+from playwright.sync_api import BrowserContext, Page, sync_playwright
 
 CHROMIUM = Path("/usr/bin/chromium")
 # The network is closed: without these Chromium stalls on connections it tries to make.
@@ -61,3 +64,28 @@ class InThread:
         if self._error is not None:
             raise self._error
         return self._result
+
+
+@contextlib.contextmanager
+def serving(run_dir: Path, *extra: str) -> Iterator[str]:
+    """`companion view RUN --port 0 ...` as a user starts it; the page's address."""
+    err = run_dir.with_name(run_dir.name + "-view-stderr.txt")
+    with err.open("w") as err_file:
+        proc = subprocess.Popen([sys.executable, "-m", "companion", "view", str(run_dir),
+                                 "--port", "0", *extra], stdout=subprocess.PIPE,
+                                stderr=err_file, text=True)
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()
+        assert line, err.read_text()
+        yield str(json.loads(line)["url"])
+    finally:
+        proc.terminate()
+        proc.wait(10)
+
+
+def set_slider(page: Page, index: int) -> None:
+    """Move the replay page's time slider to step `index` and wait until the page shows it."""
+    page.eval_on_selector("#slider", """(el, k) => { el.value = String(k);
+                                       el.dispatchEvent(new Event("input")); }""", index)
+    page.wait_for_selector(f"body[data-seq='{index + 1}']", timeout=30_000)

@@ -42,6 +42,7 @@ from companion.keys import (
     Kind,
     Matrix2,
     Pair,
+    PathText,
     Points,
     Rows,
     Text,
@@ -122,6 +123,9 @@ def _scalar_bad(kind: Kind[Any]) -> list[BadValue]:
     if isinstance(kind, Text):
         return [("empty", ""), ("int", 5), ("float", 1.5), ("true", True), ("array", ["x"]),
                 _TABLE, ("nan", math.nan), ("none", None)]
+    if isinstance(kind, PathText):  # any string names a file (or, empty, none)
+        return [("int", 5), ("float", 1.5), ("true", True), ("array", ["x"]), _TABLE,
+                ("nan", math.nan), ("none", None)]
     raise AssertionError(f"no wrong values are known for {type(kind).__name__}: teach this file")
 
 
@@ -138,7 +142,7 @@ def _valid(kind: Kind[Any]) -> object:
         return True
     if isinstance(kind, Choice):
         return kind.options[0]
-    if isinstance(kind, Text):
+    if isinstance(kind, Text | PathText):
         return "x"
     if isinstance(kind, Pair):
         return [_valid(kind.item)] * 2
@@ -419,7 +423,7 @@ def _wrong_type(kind: Kind[Any]) -> st.SearchStrategy[object]:
     if isinstance(kind, Bool):
         return st.text() | st.none() | tables | st.lists(_junk, max_size=3) | st.floats() \
             | st.integers()
-    if isinstance(kind, Choice | Text):
+    if isinstance(kind, Choice | Text | PathText):
         return st.booleans() | st.none() | tables | st.lists(_junk, max_size=3) | st.floats() \
             | st.integers()
     # Array kinds: anything that is not an array.

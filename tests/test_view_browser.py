@@ -9,7 +9,6 @@ screenshots in docs/ are taken here.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import dataclasses
 import json
 import queue
@@ -29,7 +28,7 @@ from companion.run_folder import read_steps
 from companion.sim.scenario import load_scenario
 from sitl.cli import sitl_scenarios
 from sitl.demo import DemoResult, _latlon, fly
-from tests.browser import DOCS, InThread, chromium
+from tests.browser import DOCS, InThread, chromium, serving, set_slider
 from tests.orthophotos import grass, write_geotiff
 
 pytestmark = [pytest.mark.sitl, pytest.mark.browser]
@@ -161,30 +160,6 @@ def test_the_vehicle_moves_on_the_page(mission: tuple[DemoResult, Watched]) -> N
     assert ((x1 - x0) ** 2 + (y1 - y0) ** 2) ** 0.5 > 3.0
 
 
-@contextlib.contextmanager
-def serving(run_dir: Path) -> Iterator[str]:
-    """`companion view RUN --port 0` as a user starts it; the page's address."""
-    err = run_dir.with_name(run_dir.name + "-view-stderr.txt")
-    with err.open("w") as err_file:
-        proc = subprocess.Popen([sys.executable, "-m", "companion", "view", str(run_dir),
-                                 "--port", "0"], stdout=subprocess.PIPE, stderr=err_file,
-                                text=True)
-    try:
-        assert proc.stdout is not None
-        line = proc.stdout.readline()
-        assert line, err.read_text()
-        yield str(json.loads(line)["url"])
-    finally:
-        proc.terminate()
-        proc.wait(10)
-
-
-def _set_slider(page: Page, index: int) -> None:
-    page.eval_on_selector("#slider", """(el, k) => { el.value = String(k);
-                                       el.dispatchEvent(new Event("input")); }""", index)
-    page.wait_for_selector(f"body[data-seq='{index + 1}']", timeout=30_000)
-
-
 def _ids(page: Page) -> list[int]:
     return sorted(r["id"] for r in page.eval_on_selector_all("tr[data-track-id]", ROWS_JS))
 
@@ -209,7 +184,7 @@ def test_the_replay_view_opens_at_the_end_and_its_slider_shows_a_chosen_time(
             assert abs(row["lon"] - final[row["id"]].lon_deg) <= LAT_LON_DEG, row
         assert not page.locator("#stale").is_visible()
         page.screenshot(path=str(DOCS / "view-replay.png"))
-        _set_slider(page, chosen)
+        set_slider(page, chosen)
         assert _ids(page) == sorted(steps[chosen]["confirmed_ids"])  # what the service had
         page.select_option("#speed", "16")
         page.click("#play")
@@ -220,7 +195,7 @@ def test_the_replay_view_opens_at_the_end_and_its_slider_shows_a_chosen_time(
         paused_at = page.locator("#slider").input_value()
         page.wait_for_timeout(500)  # nothing may move while paused
         assert page.locator("#slider").input_value() == paused_at
-        _set_slider(page, len(steps) - 1)
+        set_slider(page, len(steps) - 1)
         page.set_viewport_size({"width": 390, "height": 844})
         page.wait_for_function("() => document.getElementById('side').getBoundingClientRect()"
                                ".top > document.getElementById('map').getBoundingClientRect().top")
@@ -244,7 +219,7 @@ def test_a_run_folder_of_an_earlier_version_opens(mission: tuple[DemoResult, Wat
         assert page.locator("#notes").is_visible()
         assert "configuration or camera cannot be read" in page.inner_text("#notes")
         assert _ids(page) == sorted(t.id for t in result.run.tracks)
-        _set_slider(page, len(steps) // 2)
+        set_slider(page, len(steps) // 2)
         assert page.locator("#vehicle-pos").get_attribute("data-x") is not None
 
 

@@ -5,18 +5,13 @@ an earlier version)."""
 
 from __future__ import annotations
 
-import contextlib
-import json
-import subprocess
-import sys
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 from playwright.sync_api import Page
 
 from companion.config import parse_config
-from tests.browser import chromium
+from tests.browser import chromium, serving, set_slider
 from tests.test_view_model import sitl_data
 from tests.test_view_recorded import STATES, field_geotiff, write_run
 
@@ -38,30 +33,6 @@ PLACED_JS = """() => {
             loaded: img.complete && img.naturalWidth > 0, natural: [img.naturalWidth,
                                                                    img.naturalHeight]};
 }"""
-
-
-@contextlib.contextmanager
-def serving(run_dir: Path, *extra: str) -> Iterator[str]:
-    """`companion view RUN --port 0 ...` as a user starts it; the page's address."""
-    err = run_dir.with_name(run_dir.name + "-view-stderr.txt")
-    with err.open("w") as err_file:
-        proc = subprocess.Popen([sys.executable, "-m", "companion", "view", str(run_dir),
-                                 "--port", "0", *extra], stdout=subprocess.PIPE,
-                                stderr=err_file, text=True)
-    try:
-        assert proc.stdout is not None
-        line = proc.stdout.readline()
-        assert line, err.read_text()
-        yield str(json.loads(line)["url"])
-    finally:
-        proc.terminate()
-        proc.wait(10)
-
-
-def _at_step(page: Page, index: int) -> None:
-    page.eval_on_selector("#slider", """(el, k) => { el.value = String(k);
-                                       el.dispatchEvent(new Event("input")); }""", index)
-    page.wait_for_selector(f"body[data-seq='{index + 1}']", timeout=30_000)
 
 
 def _chips(page: Page) -> tuple[str, str, str]:
@@ -90,9 +61,9 @@ def test_the_orthophoto_lies_under_the_map_at_its_bounds_and_the_state_is_shown(
         assert placed["pane"] and placed["paneZ"] < placed["overlayZ"]  # under every layer
         assert page.locator("#ortho-toggle").is_visible()
         assert _chips(page) == ("done", "link ok", "camera ok")
-        _at_step(page, 2)
+        set_slider(page, 2)
         assert _chips(page) == ("taking_off", "link lost", "camera ok")
-        _at_step(page, 4)
+        set_slider(page, 4)
         assert _chips(page) == ("searching", "link ok", "camera: no picture")
         page.uncheck("#ortho-on")
         page.wait_for_selector("img.orthophoto", state="detached", timeout=10_000)
