@@ -328,16 +328,14 @@ class Service:
                       record.blind not in CAMERA_BLIND,
                       {**self.counters, "frames_dropped": frames_dropped}, home)
 
-    def _step_status(self, record: StepRecord) -> dict[str, Any]:
-        """What steps.jsonl keeps of the service's status at a step, for the replay view:
-        the mission state, link and camera health, and home (UTM) once known."""
-        origin = self.view.local_origin()
-        home = None
-        if origin is not None:
-            e, n = self.pipeline.frame.utm.geodetic_to_utm(origin.lat_deg, origin.lon_deg)
-            home = [round(float(e), 3), round(float(n), 3)]
-        return {"mission": self.mission.state.value, "link_ok": self._inputs().connected,
-                "camera_ok": record.blind not in CAMERA_BLIND, "home_utm": home}
+    def _step_status(self, status: Status) -> dict[str, Any]:
+        """What steps.jsonl keeps of the page's status at a step, for the replay view: the
+        mission state, link and camera health, and home (UTM) once known."""
+        home = status.home_xy_m
+        home_utm = None if home is None else [
+            round(float(v), 3) for v in self.pipeline.frame.to_utm(np.array(home))]
+        return {"mission": status.mission, "link_ok": status.link_ok,
+                "camera_ok": status.camera_ok, "home_utm": home_utm}
 
     def _resume(self, out: Path) -> None:
         """Find the checkpoint of a run that stopped a short while ago (a restart?)."""
@@ -430,13 +428,13 @@ class Service:
             self._last_step_wall_s = time.monotonic()
             self.counters["steps"] += 1
             self.counters["blind_steps"] += record.blind is not None
+            status = self._view_status(record, grabber.dropped)
             step_json = record.to_json(self.pipeline.frame)
-            step_json.update(self._step_status(record))
+            step_json.update(self._step_status(status))
             folder.write_step(step_json)
             state = self.pipeline.state
             if self.live is not None:
-                await self.live.after_step(step_json, state, self._view_vehicle(), partial(
-                    self._view_status, record, grabber.dropped))
+                await self.live.after_step(step_json, state, self._view_vehicle(), status)
             if state is not None and state.t_s >= self._checkpoint_due_s:  # off the event loop
                 self._checkpoint_due_s = state.t_s + CHECKPOINT_EVERY_S
                 await loop.run_in_executor(None, save_checkpoint, folder.path,

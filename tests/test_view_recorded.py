@@ -100,10 +100,13 @@ def test_a_folder_of_an_earlier_version_has_no_status(tmp_path: Path) -> None:
 
 def test_the_service_records_its_status_with_a_step() -> None:
     service = Service(parse_config(sitl_data()))
-    no_frame = service._step_status(service.pipeline.blind(1.0, "no frame"))
+    def recorded(t_s: float, blind: str) -> dict[str, object]:
+        return service._step_status(service._view_status(service.pipeline.blind(t_s, blind), 0))
+
+    no_frame = recorded(1.0, "no frame")
     assert no_frame == {"mission": "waiting_for_vehicle", "link_ok": False,
                         "camera_ok": False, "home_utm": None}
-    assert service._step_status(service.pipeline.blind(2.0, "no pose"))["camera_ok"] is True
+    assert recorded(2.0, "no pose")["camera_ok"] is True
     assert tuple(no_frame) == STEP_STATUS_KEYS
 
 

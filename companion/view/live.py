@@ -77,9 +77,9 @@ class LiveView:
                 "view_cpu_ms": round(1e3 * cpu_s)}
 
     async def after_step(self, record: dict[str, Any], state: SatState | None,
-                         vehicle: Vehicle | None, status: Callable[[], Status]) -> None:
+                         vehicle: Vehicle | None, status: Status) -> None:
         """Add a step (its record as in steps.jsonl) to the trails; pages get its message,
-        with the service's status (asked for only when a page is connected)."""
+        with the service's status."""
         started = time.thread_time()
         self.seq += 1
         xy = None if vehicle is None else vehicle.xy_m
@@ -91,7 +91,7 @@ class LiveView:
         self.trails_cpu_s += time.thread_time() - started
         if not self.server.has_clients:
             return  # nobody to show it to
-        self._next = (self.seq, record, state, vehicle, status(), self.trails)
+        self._next = (self.seq, record, state, vehicle, status, self.trails)
         if self._building:
             return  # made when the message under way is out
         self._building = True
