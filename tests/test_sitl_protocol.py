@@ -228,9 +228,13 @@ def test_link_faults(client: Client, px4: MockAutopilot) -> None:
     assert not [m for m in client.messages(0.2) if m.get_type() == "COMMAND_ACK"]
     px4.link.faults.loss_in = 0.0
     px4.link.faults.loss_out = 0.3
+    sent, dropped = px4.link.sent, px4.link.dropped_out
     beats = [m for m in client.messages(1.0) if m.get_type() == "HEARTBEAT"]
-    assert 2 <= len(beats) <= 9  # ~10 sent, ~30 % lost
-    assert px4.link.dropped_out > 0
+    assert len(beats) >= 2  # the link still carries heartbeats
+    # ~30 % of what the autopilot sent is lost, counted over every packet of the second (a
+    # thousand) rather than its ~10 heartbeats, of which all 10 arrive now and then
+    sent, dropped = px4.link.sent - sent, px4.link.dropped_out - dropped
+    assert 0.15 <= dropped / (sent + dropped) <= 0.45, (sent, dropped)
 
 
 def test_reboot_goes_silent_and_comes_back_disarmed(client: Client, px4: MockAutopilot) -> None:
