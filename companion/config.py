@@ -156,6 +156,7 @@ class MissionConfig:
     auto_arm_takeoff: bool
     auto_offboard: bool
     arm_retry_s: float
+    offboard_retry_s: float
     resume_on_pilot_offboard: bool
     end: Literal["covered", "targets", "time"]
     time_limit_s: float
@@ -325,6 +326,9 @@ SECTIONS: dict[str, tuple[Key, ...]] = {
             "enter OFFBOARD by itself once, when ready (default: the pilot selects it)"),
         Key("arm_retry_s", Float(gt=0, le=600), 20.0,
             "an arm the autopilot refuses is asked again every 2 s for this long"),
+        Key("offboard_retry_s", Float(gt=0, le=600), 20.0,
+            "an OFFBOARD request the autopilot refuses or never answers is asked again every "
+            "2 s for this long, unless the mode changes meanwhile"),
         Key("resume_on_pilot_offboard", Bool(), True,
             "after a pilot takeover, resume when the pilot selects OFFBOARD again"),
         Key("end", Choice("covered", "targets", "time"), "covered",

@@ -3,9 +3,11 @@
 `advance(mission, inputs, t_s)` returns the next `Mission` and the `Command`s the shell carries
 out in order. Rules that hold on every path:
 
-* START_OFFBOARD is emitted at most once per mission, only with `auto_offboard`, only from READY,
-  only while our setpoints stream and the vehicle is armed and in the air; never after a pilot
-  takeover or a link loss (the pilot selects OFFBOARD then). ARM/TAKEOFF likewise at most once.
+* START_OFFBOARD is one request per mission, only with `auto_offboard`, only from READY, only
+  while our setpoints stream and the vehicle is armed and in the air; never after a pilot
+  takeover or a link loss (the pilot selects OFFBOARD then). A request the autopilot refuses or
+  never answers (a lossy link) is asked again every 2 s for `offboard_retry_s`, as long as no
+  mode change was seen since the first ask. ARM likewise (`arm_retry_s`); TAKEOFF at most once.
 * Whenever we stop commanding (mode changed by someone else, failsafe, end, link lost) the same
   tick carries STOP_SETPOINTS, before any mode request (MAVSDK's offboard stop asks for Hold).
 * After a takeover, with `resume_on_pilot_offboard` the shell streams HOLD_HERE setpoints (the
@@ -38,7 +40,7 @@ from typing import Literal
 from companion.errors import ConfigError
 
 STATUSTEXT_MAX = 50  # MAVLink STATUSTEXT payload, characters
-ARM_RETRY_EVERY_S = 2.0  # a refused arm is asked again this often (PX4's transient refusals)
+RETRY_EVERY_S = 2.0  # a refused arm or OFFBOARD is asked again this often (PX4's refusals)
 # Airborne: within 1 m of the take-off altitude (PX4 ends its take-off within NAV_MC_ALT_RAD,
 # 0.8 m by default), or at 85 % of a low one.
 TAKEOFF_REACHED_FRACTION = 0.85
@@ -150,11 +152,13 @@ class MissionConfig:
     time_limit_s: float = 900.0
     end_action: Literal["hold", "land", "rtl"] = "land"
     arm_retry_s: float = 20.0  # a refused arm is asked again every 2 s for this long
+    offboard_retry_s: float = 20.0  # an unanswered or refused OFFBOARD request likewise
     takeoff_timeout_s: float = 60.0
 
     def __post_init__(self) -> None:
         """Check every value once."""
-        for key in ("takeoff_alt_m", "time_limit_s", "arm_retry_s", "takeoff_timeout_s"):
+        for key in ("takeoff_alt_m", "time_limit_s", "arm_retry_s", "offboard_retry_s",
+                    "takeoff_timeout_s"):
             value: object = getattr(self, key)
             if isinstance(value, bool) or not (
                 isinstance(value, int | float) and math.isfinite(value) and value > 0
@@ -208,6 +212,8 @@ class Mission:
     mode_fresh: bool = False  # the current mode was entered while we watched
     expected_modes: frozenset[FlightMode] = frozenset()  # what our last command leads to
     arm_asked_s: float = 0.0  # when ARM was last asked
+    offboard_first_s: float | None = None  # our OFFBOARD request awaits its mode since then
+    offboard_asked_s: float = 0.0  # when OFFBOARD was last asked
 
 
 _END_COMMAND = {"hold": CommandKind.HOLD, "land": CommandKind.LAND, "rtl": CommandKind.RTL}
@@ -349,7 +355,9 @@ def _asked(m: Mission, command: Command, t_s: float, autopilot: Autopilot) -> Mi
     if command.kind is CommandKind.TAKEOFF:
         return dataclasses.replace(m, expected_modes=_takeoff_modes(autopilot))
     if command.kind is CommandKind.START_OFFBOARD:
-        return dataclasses.replace(m, expected_modes=frozenset({FlightMode.OFFBOARD}))
+        first_s = t_s if m.offboard_first_s is None else m.offboard_first_s
+        return dataclasses.replace(m, expected_modes=frozenset({FlightMode.OFFBOARD}),
+                                   offboard_first_s=first_s, offboard_asked_s=t_s)
     if command.kind is CommandKind.ARM:
         return dataclasses.replace(m, arm_asked_s=t_s)
     return m
@@ -427,7 +435,7 @@ def advance(mission: Mission, inputs: MissionInputs, t_s: float) -> tuple[Missio
             return _takeoff(m, i, t_s, f"armed: taking off to {cfg.takeoff_alt_m:g} m")
         if t_s - m.since_s >= cfg.arm_retry_s:
             return _enter_ready(m, i, t_s, "arming failed: pilot's turn", Severity.WARNING)
-        if t_s - m.arm_asked_s >= ARM_RETRY_EVERY_S:  # PX4 refuses for a while after healthy
+        if t_s - m.arm_asked_s >= RETRY_EVERY_S:  # PX4 refuses for a while after healthy
             arm = Command(CommandKind.ARM)
             return _asked(m, arm, t_s, i.autopilot), [arm]
         return m, []
@@ -439,10 +447,19 @@ def advance(mission: Mission, inputs: MissionInputs, t_s: float) -> tuple[Missio
         return _start_search(m, t_s, "offboard: searching", auto_offboard_spent=True)
     if m.stream is None and _may_hold_stream(m, i):
         return dataclasses.replace(m, stream=Stream.HOLD_HERE), [_start(Stream.HOLD_HERE)]
-    if (cfg.auto_offboard and not m.auto_offboard_spent and m.stream is not None
-            and i.setpoints_streaming and i.armed and i.in_air
-            and i.flight_mode is not FlightMode.OFFBOARD):
-        offboard = Command(CommandKind.START_OFFBOARD)
+    may_ask = (m.stream is not None and i.setpoints_streaming and i.armed and i.in_air
+               and i.flight_mode is not FlightMode.OFFBOARD)
+    offboard = Command(CommandKind.START_OFFBOARD)
+    if cfg.auto_offboard and not m.auto_offboard_spent and may_ask:
         m = _asked(dataclasses.replace(m, auto_offboard_spent=True), offboard, t_s, i.autopilot)
         return m, [offboard, statustext("requesting offboard")]
+    if m.offboard_first_s is None or m.offboard_first_s < m.since_s:  # none asked in this READY
+        return m, []
+    if m.mode_seen is not before.mode_seen:  # a mode change since we asked: never ask again
+        return dataclasses.replace(m, offboard_first_s=None), []
+    if t_s - m.offboard_first_s >= cfg.offboard_retry_s:
+        return (dataclasses.replace(m, offboard_first_s=None),
+                [statustext("offboard refused: pilot's turn", Severity.WARNING)])
+    if may_ask and t_s - m.offboard_asked_s >= RETRY_EVERY_S:  # refused, or its answer lost
+        return _asked(m, offboard, t_s, i.autopilot), [offboard]
     return m, []

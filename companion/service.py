@@ -146,7 +146,8 @@ class Service:
         m, s = self.config.mission, self.config.search
         return ms.MissionConfig(
             auto_arm_takeoff=m.auto_arm_takeoff, auto_offboard=m.auto_offboard,
-            arm_retry_s=m.arm_retry_s, takeoff_alt_m=s.altitude_m,
+            arm_retry_s=m.arm_retry_s, offboard_retry_s=m.offboard_retry_s,
+            takeoff_alt_m=s.altitude_m,
             resume_on_pilot_offboard=m.resume_on_pilot_offboard,
             end=m.end, sweeps=s.sweeps if s.planner == "lawnmower" else 1,
             time_limit_s=m.time_limit_s, end_action=m.end_action)

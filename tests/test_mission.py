@@ -372,6 +372,52 @@ def test_a_refused_arm_is_asked_again_until_a_mode_change_or_the_timeout() -> No
     assert m.state is State.PILOT_HAS_CONTROL
 
 
+def ready_to_ask(**config: object) -> Mission:
+    """Airborne after our own take-off, streaming: the tick that asks for OFFBOARD is next."""
+    cfg = replace(AUTO, **config)  # type: ignore[arg-type]
+    hold = replace(STREAMING, flight_mode=FlightMode.HOLD, alt_rel_m=8.0)
+    m, _ = run(Mission(cfg), [ON_GROUND, ON_GROUND, replace(ON_GROUND, armed=True),
+                              replace(hold, flight_mode=FlightMode.TAKEOFF), hold])
+    assert m.state is State.READY and m.stream is Stream.HOLD_HERE
+    return m
+
+
+HOLD_UP = replace(STREAMING, flight_mode=FlightMode.HOLD, alt_rel_m=8.0)
+
+
+def test_an_unanswered_offboard_request_is_asked_again_every_2_s_until_the_timeout() -> None:
+    m, ticks = run(ready_to_ask(offboard_retry_s=7.0), [HOLD_UP] * 12, 5.0)  # lost, or refused
+    assert [kinds(t) for t in ticks] == [[K.START_OFFBOARD], [], [K.START_OFFBOARD], [],
+                                         [K.START_OFFBOARD], [], [K.START_OFFBOARD], [], [],
+                                         [], [], []]
+    assert texts(ticks[7]) == ["offboard refused: pilot's turn"]
+    assert ticks[7][0].severity is Severity.WARNING and m.state is State.READY
+    m, ticks = run(m, [HOLD_UP] * 10 + [OFFBOARD], 17.0)  # the pilot's OFFBOARD still works
+    assert all(kinds(t) == [] for t in ticks[:-1]) and ticks[-1][0] == PLANNER
+
+
+def test_an_offboard_granted_on_a_retry_starts_the_search() -> None:
+    m, ticks = run(ready_to_ask(), [HOLD_UP] * 3 + [OFFBOARD], 5.0)
+    assert [kinds(t) for t in ticks] == [[K.START_OFFBOARD], [], [K.START_OFFBOARD],
+                                         [K.START_SETPOINTS]]
+    assert m.state is State.SEARCHING
+
+
+@pytest.mark.parametrize("mode", [FlightMode.POSCTL, FlightMode.ALTCTL, FlightMode.RTL])
+def test_a_mode_change_while_offboard_is_awaited_ends_the_retries(mode: FlightMode) -> None:
+    other = replace(HOLD_UP, flight_mode=mode)
+    _, ticks = run(ready_to_ask(), [HOLD_UP, other] + [other] * 10 + [HOLD_UP] * 10, 5.0)
+    assert [k for t in ticks for k in kinds(t)] == [K.START_OFFBOARD]
+
+
+def test_no_offboard_retry_after_leaving_ready() -> None:
+    m, ticks = run(ready_to_ask(), [HOLD_UP, replace(HOLD_UP, position_ok=False), HOLD_UP,
+                                    HOLD_UP, replace(HOLD_UP, setpoints_streaming=False)]
+                   + [HOLD_UP] * 10, 5.0)
+    assert m.state is State.READY
+    assert [k for t in ticks for k in kinds(t)].count(K.START_OFFBOARD) == 1
+
+
 def test_mode_changes_before_the_first_decision_are_only_the_baseline() -> None:
     booting = replace(ON_GROUND, health_ok=False, flight_mode=FlightMode.MANUAL)
     m, ticks = run(Mission(AUTO), [booting, replace(booting, flight_mode=FlightMode.HOLD),
@@ -386,6 +432,7 @@ def test_mode_changes_before_the_first_decision_are_only_the_baseline() -> None:
         ({"takeoff_alt_m": float("nan")}, "mission.takeoff_alt_m"),
         ({"time_limit_s": -1.0}, "mission.time_limit_s"),
         ({"arm_retry_s": True}, "mission.arm_retry_s"),
+        ({"offboard_retry_s": 0}, "mission.offboard_retry_s"),
         ({"takeoff_timeout_s": float("inf")}, "mission.takeoff_timeout_s"),
         ({"sweeps": 0}, "search.sweeps"),
         ({"sweeps": 1.5}, "search.sweeps"),
