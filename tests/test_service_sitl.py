@@ -84,8 +84,9 @@ def test_field_experiment_mission(flavour: Literal["px4", "ardupilot"], tmp_path
     if flavour == "ardupilot":
         assert "airborne in guided: searching" in texts and "start_offboard" not in commands
     else:
+        # each refused arm (none when the service was healthy after the warm-up) asked again
         refused = [e for e in events if e["event"] == "command_failed" and e["kind"] == "arm"]
-        assert refused and commands.count("arm") == len(refused) + 1
+        assert commands.count("arm") == len(refused) + 1
         assert commands.count("start_offboard") == 1
     # Airborne means at the take-off altitude: the first setpoint holds the vehicle there.
     assert altitudes[0] >= scenario.vehicle.altitude_m - TAKEOFF_REACHED_M - 0.1
