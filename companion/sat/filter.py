@@ -201,10 +201,8 @@ def _predict(state: SatState, dt_s: float, params: SatParams) -> Mixture:
 
 def _refit_fresh(tracks: Tracks, t_s: float, gp: GpPredictor) -> Tracks:
     """Only confirmed tracks are predicted by their GP: refit the windows that just changed."""
-    fresh = np.flatnonzero(
-        tracks.confirmed & (tracks.win_count > 0) & (tracks.win_t_s[:, -1] == t_s)
-    )
-    return tracks.refit_gp(fresh, gp)
+    fresh = tracks.confirmed & (tracks.win_count > 0) & (tracks.win_t_s[:, -1] == t_s)
+    return tracks.refit_gp(fresh.nonzero()[0], gp)
 
 
 def step(
@@ -287,7 +285,7 @@ def step(
     detected_reduced = from_detection > 0.5 * reduced.weights
 
     est_index = extract(reduced, params.extract_weight)
-    est_rows = np.flatnonzero(reduced.weights > params.extract_weight)
+    est_rows = (reduced.weights > params.extract_weight).nonzero()[0]
     evidence = None if region is None else Evidence(
         region, params.p_detect, clutter, r_cov, params.birth_weight / region.area_m2
     )

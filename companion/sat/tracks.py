@@ -34,6 +34,7 @@ from dataclasses import dataclass, field, fields, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.sat import track_kernels as kernels
 from companion.sat.fov import Region, prob_in_region, truncation_moments
 from companion.sat.gp import GpFit, GpPredictor
 from companion.sat.linalg import inv_det_2x2
@@ -227,55 +228,6 @@ _ROW_FIELDS = tuple(f.name for f in fields(Tracks) if f.name not in ("log", "nex
 """The fields of Tracks that hold one row per track."""
 
 
-def gate_distances(tracks: Tracks, means: FloatArray, covs: FloatArray) -> FloatArray:
-    """(T, e) squared Mahalanobis distances between track positions and estimate positions.
-
-    The covariance is the sum of the track's and the estimate's position covariances: both
-    positions are uncertain, and a well-localised track must still accept its own next estimate.
-    """
-    diff = means[None, :, :2] - tracks.means[:, None, :2]
-    inv, _ = inv_det_2x2(tracks.covs[:, None, :2, :2] + covs[None, :, :2, :2])
-    result: FloatArray = np.einsum("tei,teij,tej->te", diff, inv, diff)
-    return result
-
-
-def _associate(
-    tracks: Tracks, est_labels: IntArray, est_means: FloatArray, est_covs: FloatArray,
-    gate_sq: float,
-) -> IntArray:
-    """For each estimate, the row of the track it continues, or -1 for a new track."""
-    n_est = est_labels.shape[0]
-    assigned = np.full(n_est, -1, dtype=np.int64)
-    if tracks.size == 0 or n_est == 0:
-        return assigned
-    # 1. An estimate continues the track its component is labelled with: the component descends
-    #    from the track's, which is the association the GM-PHD itself made (of two estimates
-    #    with one label, the closer).
-    rows = np.minimum(np.searchsorted(tracks.ids, est_labels), tracks.size - 1)  # ids sorted
-    claims = np.flatnonzero(tracks.ids[rows] == est_labels)
-    if claims.size:
-        first_rows, first = np.unique(rows[claims], return_index=True)
-        if first_rows.size < claims.size:  # one lineage, two estimates: the closer continues it
-            dist = gate_distances(tracks, est_means[claims], est_covs[claims])
-            claims = claims[np.argsort(dist[rows[claims], np.arange(claims.size)], kind="stable")]
-            first_rows, first = np.unique(rows[claims], return_index=True)
-        assigned[claims[first]] = first_rows
-    # 2. The rest gate with the unclaimed tracks, nearest pairs first.
-    free = np.flatnonzero(assigned < 0)
-    if free.size == 0:
-        return assigned
-    claimed = np.zeros(tracks.size, dtype=bool)
-    claimed[assigned[assigned >= 0]] = True
-    dist = gate_distances(tracks, est_means[free], est_covs[free])
-    t_rows, t_cols = np.nonzero((dist <= gate_sq) & ~claimed[:, None])
-    for k in np.argsort(dist[t_rows, t_cols], kind="stable"):
-        row, est = t_rows[k], free[t_cols[k]]
-        if not claimed[row] and assigned[est] < 0:
-            claimed[row] = True
-            assigned[est] = row
-    return assigned
-
-
 def grown_covs(tracks: Tracks, t_s: float, motion: TargetMotion) -> FloatArray:
     """(T, d, d) each track's honest covariance at t_s (Eq. iou_variance on the position block).
 
@@ -354,22 +306,18 @@ def maintain(
     its weight to a detection this step. `evidence` is what the frame could see (None: a blind
     step, which scores nothing).
     """
-    assigned = _associate(
-        _gating_view(tracks, t_s, params.motion), mix.labels[est_rows], mix.means[est_rows],
+    gating = _gating_view(tracks, t_s, params.motion)
+    assigned = kernels.associate(  # Eq. gate, Panta et al.'s association
+        gating.ids, gating.means, gating.covs, mix.labels[est_rows], mix.means[est_rows],
         mix.covs[est_rows], params.gate_sq,
     )
     has_estimate = assigned >= 0
     supported_by = np.full(tracks.size, -1, dtype=np.int64)  # mixture row supporting each track
     supported_by[assigned[has_estimate]] = est_rows[has_estimate]
     # Hold: a confirmed track with no estimate is kept by its labelled component, if it survives.
-    idle = np.flatnonzero((supported_by < 0) & tracks.confirmed)
-    labelled = np.flatnonzero(mix.labels != NO_LABEL) if idle.size else idle
-    if labelled.size:
-        heaviest = labelled[np.argsort(-mix.weights[labelled], kind="stable")]
-        ids, first = np.unique(mix.labels[heaviest], return_index=True)
-        at = np.minimum(np.searchsorted(ids, tracks.ids[idle]), ids.size - 1)
-        found = ids[at] == tracks.ids[idle]
-        supported_by[idle[found]] = heaviest[first[at[found]]]
+    idle = ((supported_by < 0) & tracks.confirmed).nonzero()[0]
+    if idle.size:
+        kernels.hold(supported_by, idle, tracks.ids, mix.labels, mix.weights, NO_LABEL)
     hit = np.zeros(tracks.size, dtype=bool)
     hit[assigned[has_estimate]] = detected[est_rows[has_estimate]]
 
@@ -378,7 +326,7 @@ def maintain(
     # A moving target's confirmed track that nothing supports coasts on its growing uncertainty
     # until the frames refute it; a stationary one's ends after the timeout.
     coasting = ~supported & tracks.confirmed & (params.motion.speed_m_s > 0.0)
-    updated = _coast(updated, np.flatnonzero(coasting), t_s, params, evidence)
+    updated = _coast(updated, coasting.nonzero()[0], t_s, params, evidence)
     existence = updated.existence
     if params.area is not None and coasting.any():
         # a track coasting alone exists only as far as its Gaussian lies in the search area
@@ -420,8 +368,8 @@ def _absorb(
     track's honest covariance; the old track then takes the new one's state and its component's
     label, and the new one ends. Most likely pairs first.
     """
-    new = np.flatnonzero(tracks.confirmed & ~was_confirmed)
-    old = np.flatnonzero(was_confirmed)
+    new = (tracks.confirmed & ~was_confirmed).nonzero()[0]
+    old = was_confirmed.nonzero()[0]
     if new.size == 0 or old.size == 0:
         return tracks, labels
     honest = grown_covs(tracks, t_s, params.motion)
@@ -469,16 +417,17 @@ def _scores(
     score = tracks.score.copy()
     if evidence is None or rows.size == 0:
         return score
-    cov_xy = mix.covs[comp, :2, :2]
-    p_in = prob_in_region(mix.means[comp, :2], cov_xy, evidence.region, check=False)
-    _, det_s = inv_det_2x2(cov_xy + evidence.r_cov)
-    gate_area_m2 = math.pi * params.gate_sq * np.sqrt(det_s)  # area of d^2 <= U under P + R
-    p_fa = np.minimum(0.5, evidence.clutter_per_m2 * gate_area_m2)
-    p_d = evidence.p_detect
-    delta = np.where(
-        hit[rows],
-        np.log(max(p_d, 1e-300) / np.maximum(p_fa, 1e-300)),  # Eq. track_score_hit
-        np.log1p(-np.minimum(p_d * p_in, 1.0 - 1e-12)),  # Eq. track_score_miss
+    hits = hit[rows]
+    p_in = np.zeros(rows.size)
+    missed = (~hits).nonzero()[0]
+    if missed.size:
+        miss_comp = comp[missed]
+        p_in[missed] = prob_in_region(
+            mix.means[miss_comp, :2], mix.covs[miss_comp, :2, :2], evidence.region, check=False
+        )
+    delta = kernels.score_deltas(  # Eqs. track_score_hit, track_score_miss
+        mix.covs[comp], p_in, hits, evidence.r_cov, evidence.p_detect, evidence.clutter_per_m2,
+        params.gate_sq,
     )
     score[rows] = np.minimum(score[rows] + delta, _logit(params.max_existence))
     return score
@@ -495,7 +444,7 @@ def _support(
     evidence: Evidence | None,
 ) -> Tracks:
     """The tracks with this step's support and evidence applied to the supported rows."""
-    rows = np.flatnonzero(supported)
+    rows = supported.nonzero()[0]
     if rows.size == 0:
         return tracks
     comp = supported_by[rows]
@@ -508,7 +457,7 @@ def _support(
     score = _scores(tracks, rows, comp, hit, mix, params, evidence)
     # The GP window holds detected positions only: a coasting track's own predictions would feed
     # back into its next prediction.
-    seen = np.flatnonzero(hit)
+    seen = hit.nonzero()[0]
     win_t, win_xy, win_count = pushed_windows(
         tracks, seen, mix.means[supported_by[seen], :2], t_s, params.window)
     last_t = tracks.last_t_s.copy()
