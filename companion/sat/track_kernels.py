@@ -28,7 +28,7 @@ def _gate_sq(mt: FloatArray, pt: FloatArray, me: FloatArray, pe: FloatArray) -> 
     det = a00 * a11 - a01 * a10
     dx = me[0] - mt[0]
     dy = me[1] - mt[1]
-    return (dx * (a11 * dx - a01 * dy) + dy * (a00 * dy - a10 * dx)) / det
+    return float((dx * (a11 * dx - a01 * dy) + dy * (a00 * dy - a10 * dx)) / det)
 
 
 @njit(cache=True, nogil=True)
