@@ -161,7 +161,7 @@ def _checked_r(r: object) -> FloatArray:
     if r_cov.shape != (2, 2):
         raise InputError(f"scan measurement covariance: expected shape (2, 2), got {r_cov.shape}")
     (a, b), (c, d) = r_cov.tolist()
-    if not all(map(np.isfinite, (a, b, c, d))):
+    if not all(map(math.isfinite, (a, b, c, d))):
         raise InputError("scan measurement covariance: must be finite")
     asymmetric, indefinite = spd_2x2_faults(r_cov)
     if asymmetric:

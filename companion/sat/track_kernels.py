@@ -138,3 +138,28 @@ def score_deltas(
         else:
             out[k] = math.log1p(-min(p_detect * p_in[k], 1.0 - 1e-12))
     return out
+
+
+@njit(cache=True, nogil=True)
+def supported_rows(
+    means: FloatArray, covs: FloatArray, hits: IntArray, life: IntArray, last_t_s: FloatArray,
+    seen_t_s: FloatArray, alone: BoolArray, supported_by: IntArray, hit: BoolArray,
+    mix_means: FloatArray, mix_covs: FloatArray, t_s: float,
+) -> tuple[FloatArray, FloatArray, IntArray, IntArray, FloatArray, FloatArray, BoolArray]:
+    """New (means, covs, hits, life, last_t_s, seen_t_s, alone): each row with supported_by[row]
+    >= 0 takes that component's moments and time t_s, a row with hit also counts a detection."""
+    means, covs, hits, life = means.copy(), covs.copy(), hits.copy(), life.copy()
+    last_t_s, seen_t_s, alone = last_t_s.copy(), seen_t_s.copy(), alone.copy()
+    for row in range(supported_by.shape[0]):
+        comp = supported_by[row]
+        if hit[row]:
+            hits[row] += 1
+            seen_t_s[row] = t_s
+        if comp < 0:
+            continue
+        means[row] = mix_means[comp]
+        covs[row] = mix_covs[comp]
+        life[row] += 1
+        last_t_s[row] = t_s
+        alone[row] = False
+    return means, covs, hits, life, last_t_s, seen_t_s, alone

@@ -448,31 +448,27 @@ def _support(
     if rows.size == 0:
         return tracks
     comp = supported_by[rows]
-    seen_t = np.where(hit, t_s, tracks.seen_t_s)
-    means = tracks.means.copy()
-    covs = tracks.covs.copy()
-    means[rows] = mix.means[comp]
-    covs[rows] = mix.covs[comp]
-    hits = tracks.hits + hit
+    means, covs, hits, life, last_t, seen_t, alone = kernels.supported_rows(
+        tracks.means, tracks.covs, tracks.hits, tracks.life, tracks.last_t_s, tracks.seen_t_s,
+        tracks.alone, supported_by, hit, mix.means, mix.covs, t_s,
+    )
     score = _scores(tracks, rows, comp, hit, mix, params, evidence)
     # The GP window holds detected positions only: a coasting track's own predictions would feed
     # back into its next prediction.
     seen = hit.nonzero()[0]
     win_t, win_xy, win_count = pushed_windows(
         tracks, seen, mix.means[supported_by[seen], :2], t_s, params.window)
-    last_t = tracks.last_t_s.copy()
-    last_t[rows] = t_s
     confirm = _confirmable(hits, score, params)
     return Tracks(
         ids=tracks.ids,
         hits=hits,
-        life=tracks.life + supported,
+        life=life,
         confirmed=tracks.confirmed | confirm,
         born_t_s=tracks.born_t_s,
         last_t_s=last_t,
         seen_t_s=seen_t,
         score=score,
-        alone=tracks.alone & ~supported,
+        alone=alone,
         means=means,
         covs=covs,
         win_t_s=win_t,
