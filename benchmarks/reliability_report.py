@@ -27,12 +27,13 @@ FAULTS: list[tuple[str, str, str]] = [  # figures name, fault, expected behaviou
     ("fault-link-loss10-latency0.2", "packet loss 10 % and 200 ms added latency",
      "the field mission completes with every target confirmed"),
     ("fault-link-loss30", "MAVLink packet loss 30 % both ways",
-     "completes, or, when the autopilot's offboard-loss failsafe takes over or the health "
-     "flags drop, the service lets go and never takes control back; no ghost track either "
-     "way"),
+     "completes, or, when the autopilot's offboard-loss fallback takes over or the health "
+     "flags drop, the service lets go, never asks for a mode, and commands again only once "
+     "PX4 is back in OFFBOARD by itself; no ghost track either way"),
     ("fault-link-cut", "link cut for 5 s mid-mission",
-     "the autopilot's offboard-loss failsafe holds; the service notices within 1 s, stops "
-     "commanding, keeps estimating; on reconnection it says so and waits for the pilot"),
+     "the autopilot falls back to Position mode; the service notices within 1 s, stops "
+     "commanding, keeps estimating; on reconnection it says so and streams hold-here "
+     "setpoints, PX4 returns to OFFBOARD by itself and the search resumes, no mode asked"),
     ("fault-pilot-mode", "the pilot switches to Position mid-mission",
      "the service stops commanding within one setpoint period of the heartbeat that reports "
      "the mode, keeps estimating, and never re-enters OFFBOARD by itself"),
@@ -50,7 +51,7 @@ FAULTS: list[tuple[str, str, str]] = [  # figures name, fault, expected behaviou
      "the service reconnects and waits: no arm, take-off, mode or planner setpoints"),
     ("fault-kill-restart", "the service is killed (SIGKILL) mid-flight and started again",
      "the killed run replays; the new process takes no automatic step and resumes the "
-     "estimate from its checkpoint (the autopilot holds meanwhile)"),
+     "estimate from its checkpoint (the autopilot in its Position fallback meanwhile)"),
 ]
 BAD_INPUT: list[tuple[str, str, str]] = [
     ("bad-mavlink", "random and truncated datagrams, latitude 200 and a NaN attitude on the "

@@ -4,7 +4,9 @@ It is what the real MAVSDK library connects to in the tests: heartbeats with the
 encoding, AUTOPILOT_VERSION with the capability bits MAVSDK checks, command acks, the parameter
 protocol for the parameters MAVSDK reads, telemetry at realistic rates with boot-time stamps,
 and PX4's offboard rules: OFFBOARD is refused unless setpoints already stream, and a setpoint
-stream that stops for COM_OF_LOSS_T leaves OFFBOARD to the configured failsafe. The ArduPilot
+stream that stops for COM_OF_LOSS_T falls back from OFFBOARD to the configured failsafe mode,
+which returns to OFFBOARD when the stream comes back unless the mode was changed or the vehicle
+disarmed meanwhile (PX4 v1.15's mode fallback, measured on SIH). The ArduPilot
 flavour uses Copter's mode numbers, GUIDED for offboard, streams nothing until asked, reports
 local NED about its EKF origin, and refuses to arm in modes that forbid it.
 
@@ -82,9 +84,21 @@ UINT16_UNKNOWN = 0xFFFF  # GPS_RAW_INT eph, epv, cog: not known
 class Failsafe(Enum):
     """What the autopilot does when the offboard setpoints stop (COM_OBL_RC_ACT)."""
 
+    POSITION = "position"
     HOLD = "hold"
     LAND = "land"
     RTL = "rtl"
+
+
+# PX4's COM_OBL_RC_ACT values of the modelled actions. The others (1 Altitude, 2 Manual,
+# 6 Terminate, 7 Disarm) are not modelled: set over MAVLink, they fly Position, PX4's default.
+COM_OBL_RC_ACT: dict[Failsafe, int] = {
+    Failsafe.POSITION: 0, Failsafe.RTL: 3, Failsafe.LAND: 4, Failsafe.HOLD: 5,
+}
+FAILSAFE_BEHAVIOUR: dict[Failsafe, Behaviour] = {
+    Failsafe.POSITION: Behaviour.POSITION, Failsafe.HOLD: Behaviour.HOLD,
+    Failsafe.LAND: Behaviour.LAND, Failsafe.RTL: Behaviour.RTL,
+}
 
 
 # Default telemetry rates (Hz) of PX4's onboard link; an ArduPilot sends none until asked.
@@ -206,7 +220,7 @@ class AutopilotConfig:
     takeoff_alt_m: float = 2.5  # MIS_TAKEOFF_ALT
     rtl_alt_m: float = 30.0  # RTL_RETURN_ALT
     offboard_loss_timeout_s: float = 1.0  # COM_OF_LOSS_T
-    offboard_failsafe: Failsafe = Failsafe.HOLD  # COM_OBL_RC_ACT
+    offboard_failsafe: Failsafe = Failsafe.POSITION  # COM_OBL_RC_ACT (PX4's default: 0)
     # None: the flavour's measured value (FLAVOUR_DEFAULTS; see `firmware`).
     armable_after_s: float | None = None  # estimator settling after boot
     gps_fix_after_s: float | None = None  # GPS fix after boot (never after armable_after_s)
@@ -365,6 +379,7 @@ class MockAutopilot:
         pilot = Behaviour.POSITION if cfg.flavour is Flavour.PX4 else Behaviour.MANUAL
         self._behaviour = pilot
         self._behaviour_reported_clock_s: float | None = None
+        self._offboard_fallback = False  # in the offboard-loss failsafe, OFFBOARD still intended
         self._mode_target: Target | None = None
         self._rtl_phase = 0
         self._guided_takeoff_alt: float | None = None
@@ -387,7 +402,7 @@ class MockAutopilot:
             "MIS_TAKEOFF_ALT": cfg.takeoff_alt_m,
             "RTL_RETURN_ALT": cfg.rtl_alt_m,
             "COM_OF_LOSS_T": cfg.offboard_loss_timeout_s,
-            "COM_OBL_RC_ACT": float(list(Failsafe).index(cfg.offboard_failsafe)),
+            "COM_OBL_RC_ACT": float(COM_OBL_RC_ACT[cfg.offboard_failsafe]),
         }
         if cfg.flavour is Flavour.PX4:
             self._intervals = {k: 1.0 / v for k, v in PX4_RATES_HZ.items()}
@@ -447,7 +462,7 @@ class MockAutopilot:
             if arm:
                 self._arm()
             else:
-                self._armed = False
+                self._disarm()
 
     def set_battery_percent(self, percent: float) -> None:
         """Drain (or charge) the battery to a level."""
@@ -513,6 +528,8 @@ class MockAutopilot:
     # -- modes --------------------------------------------------------------------------------
 
     def _set_behaviour(self, behaviour: Behaviour, by_pilot: bool = False) -> None:
+        """Switch to a mode; any switch, or a request for the mode it is in, ends a fallback."""
+        self._offboard_fallback = False
         if behaviour is self._behaviour:
             return
         previous = self._behaviour
@@ -541,12 +558,12 @@ class MockAutopilot:
                 if self._landed_at_s == 0.0:
                     self._landed_at_s = t
                 elif t - self._landed_at_s > LANDED_DISARM_S:
-                    self._armed = False
+                    self._disarm()
                     self._statustext("landed: disarmed")
             elif t - self._armed_at_s > PREFLIGHT_DISARM_S and self._behaviour not in (
                 Behaviour.TAKEOFF, Behaviour.OFFBOARD,
             ):
-                self._armed = False
+                self._disarm()
                 self._statustext("preflight: disarmed, no takeoff")
         else:
             self._landed_at_s = 0.0
@@ -557,17 +574,23 @@ class MockAutopilot:
         if self._behaviour is Behaviour.OFFBOARD and self.config.flavour is Flavour.PX4:
             last = self._setpoint.t_s if self._setpoint is not None else -math.inf
             if self._armed and t - last > self._params["COM_OF_LOSS_T"]:
-                action = list(Failsafe)[int(self._params["COM_OBL_RC_ACT"])]
+                action = self._offboard_loss_action()
                 self._statustext(f"failsafe: offboard setpoints lost, {action.value}")
-                self._set_behaviour(
-                    {Failsafe.HOLD: Behaviour.HOLD, Failsafe.LAND: Behaviour.LAND,
-                     Failsafe.RTL: Behaviour.RTL}[action]
-                )
+                self._set_behaviour(FAILSAFE_BEHAVIOUR[action])
+                self._offboard_fallback = True
+        elif self._offboard_fallback and self._armed and self._setpoints_streaming():
+            self._statustext("failsafe: offboard setpoints back, offboard")
+            self._set_behaviour(Behaviour.OFFBOARD)
         if (self._armed and not self._battery_failsafe_done
                 and self._battery_percent() < self.config.battery_low_percent):
             self._battery_failsafe_done = True
             self._statustext("failsafe: low battery, returning")
             self._set_behaviour(Behaviour.RTL)
+
+    def _offboard_loss_action(self) -> Failsafe:
+        """The failsafe COM_OBL_RC_ACT names; Position for a value not modelled."""
+        value = self._params["COM_OBL_RC_ACT"]
+        return next((f for f, v in COM_OBL_RC_ACT.items() if v == value), Failsafe.POSITION)
 
     def _spooling_up(self) -> bool:
         """On the ground after NAV_TAKEOFF, the motors not yet at take-off speed."""
@@ -700,6 +723,11 @@ class MockAutopilot:
         self._battery_failsafe_done = False
         return int(mavlink.MAV_RESULT_ACCEPTED)
 
+    def _disarm(self) -> None:
+        """Disarm; it also ends an offboard-loss fallback."""
+        self._armed = False
+        self._offboard_fallback = False
+
     def _refuse(self, event_id: int, ardupilot_text: str) -> None:
         """Say why a command was refused: PX4 with an EVENT, ArduPilot with a STATUSTEXT."""
         if self.config.flavour is Flavour.PX4:
@@ -778,7 +806,7 @@ class MockAutopilot:
             if p[0] >= 0.5:
                 self._ack(msg, self._arm())
             elif self._vehicle.on_ground or abs(p[1] - FORCE_MAGIC) < 0.5:
-                self._armed = False
+                self._disarm()
                 self._ack(msg, accepted)
             else:
                 self._ack(msg, denied)

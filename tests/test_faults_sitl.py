@@ -56,7 +56,27 @@ def _texts(result: DemoResult, event: str = "command") -> list[tuple[float, str]
             for e in _lines(result.run.out_dir / "events.jsonl") if e["event"] == event]
 
 
-def _assert_no_control_taken(result: DemoResult, since_s: float) -> None:
+def _assert_no_control_taken(events: list[dict[str, Any]], since_s: float) -> None:
+    """After since_s: no arm, take-off or mode request, and the service commands only while the
+    heartbeat shows OFFBOARD: each planner stream starts after an OFFBOARD mode event, its
+    setpoints stop within a setpoint period of any other mode, and a mission end (hold, land,
+    rtl) comes only in OFFBOARD. PX4 returns to OFFBOARD by itself when setpoints come back
+    after its offboard-loss fallback; the service then searches on as after a pilot's OFFBOARD."""
+    mode, mode_at_s = None, -math.inf
+    for e in events:
+        if e["event"] == "mode":
+            mode, mode_at_s = e["mode"], e["t_s"]
+        if e["t_s"] <= since_s:
+            continue
+        if e["event"] == "command":
+            assert e["kind"] not in ("start_offboard", "arm", "takeoff"), e
+            if e["kind"] in ("hold", "land", "rtl") or e.get("stream") == "planner":
+                assert mode == "OFFBOARD", (mode, e)
+        elif e["event"] == "setpoint" and e["mode"] == "searching":
+            assert mode == "OFFBOARD" or e["t_s"] - mode_at_s <= SETPOINT_PERIOD_S, (mode, e)
+
+
+def _assert_left_to_the_pilot(result: DemoResult, since_s: float) -> None:
     """After since_s: no arm, take-off, mode request or planner stream; only "hold here"
     setpoints, which the autopilot ignores outside OFFBOARD and which let the pilot select it."""
     commands = [e for e in _lines(result.run.out_dir / "events.jsonl")
@@ -105,9 +125,10 @@ def test_a_lossy_and_slow_link_still_finds_every_target(tmp_path: Path) -> None:
 
 def test_a_30_percent_lossy_link_is_flown_safely(tmp_path: Path) -> None:
     """At 30 % loss both ways the autopilot's 1 Hz heartbeat is often missing for 3 s, the
-    offboard stream can lapse (the autopilot's failsafe holds) and the health flags can drop
-    (the service stops): then the service lets go. Whatever happens, no ghost is confirmed
-    and control is never taken back."""
+    offboard stream can lapse (PX4 falls back to Position mode, and returns to OFFBOARD when
+    setpoints come back) and the health flags can drop (the service stops): then the service
+    lets go. Whatever happens, no ghost is confirmed, and the service never asks for a mode,
+    arms or takes off, and commands only while the autopilot is in OFFBOARD."""
     faults = "loss=30"
     result = _fly(tmp_path, LINK_SPEEDUP, faults=faults, stop_after_s=400.0)
     _record_link("fault-link-loss30", faults, result)
@@ -116,8 +137,8 @@ def test_a_30_percent_lossy_link_is_flown_safely(tmp_path: Path) -> None:
     texts = _texts(result)
     let_go = [t for t, text in texts  # an autopilot failsafe, a lost link or position
               if text.endswith("pilot has control") or " lost: " in text]
-    if let_go:  # nothing but "hold here" setpoints after it
-        _assert_no_control_taken(result, let_go[0])
+    if let_go:  # commanding again only once the autopilot is back in OFFBOARD by itself
+        _assert_no_control_taken(_lines(result.run.out_dir / "events.jsonl"), let_go[0])
     else:
         assert result.score.missed == 0 and result.run.mission_state == "done"
 
@@ -164,19 +185,36 @@ def test_a_link_cut_leaves_the_vehicle_to_its_failsafe_and_the_service_waits(
     record_figure("fault-link-cut", notice_s=lost[0] - cut_s if lost else None,
                   autopilot=snap.behaviour.value, state=result.run.mission_state)
     assert len(lost) == 1 and cut_s < lost[0] <= cut_s + 1.0  # noticed within 1 s
-    assert snap.behaviour is Behaviour.HOLD and snap.armed  # the autopilot's failsafe flies
-    _assert_no_control_taken(result, cut_s)
+    events = _lines(result.run.out_dir / "events.jsonl")
+    modes = [e["mode"] for e in events if e["event"] == "mode" and e["t_s"] > cut_s]
+    assert modes[:2] == ["POSCTL", "OFFBOARD"], modes  # PX4's fallback, then its return
+    assert snap.armed
+    _assert_no_control_taken(events, cut_s)
     back = [t for t, text in texts if text == "vehicle connected: checking health"]
     assert back and back[-1] > cut_s + cut_for_s  # says so to the ground station
     steps = _lines(result.run.out_dir / "steps.jsonl")
     assert [s for s in steps if cut_s + 1.0 < s["t_s"] < cut_s + cut_for_s]  # still estimating
 
 
+def test_a_pilots_position_mode_is_kept_while_hold_here_streams(tmp_path: Path) -> None:
+    """The pilot's switch replaces OFFBOARD as the mode PX4 is to fly: the service's "hold
+    here" setpoints, which would end an offboard-loss fallback, never bring OFFBOARD back."""
+    switch_s = 70.0
+    result = _fly(tmp_path, faults=f"pilot@{switch_s:g}:posctl", stop_after_s=switch_s + 25.0)
+    _assert_left_to_the_pilot(result, switch_s)
+    commands = [e for e in _lines(result.run.out_dir / "events.jsonl")
+                if e["event"] == "command" and e["t_s"] > switch_s]
+    assert [e for e in commands if e["kind"] == "start_setpoints"
+            and e["stream"] == "hold_here"]  # streamed: PX4 would take OFFBOARD if selected
+    assert result.autopilot.behaviour is Behaviour.POSITION and result.autopilot.armed
+    assert result.run.mission_state == "pilot_has_control"
+
+
 def test_an_autopilot_reboot_is_waited_out_without_commands(tmp_path: Path) -> None:
     reboot_s = 80.0
     result = _fly(tmp_path, faults=f"reboot@{reboot_s:g}+5", stop_after_s=110.0)
     snap = result.autopilot
-    _assert_no_control_taken(result, reboot_s)
+    _assert_left_to_the_pilot(result, reboot_s)
     record_figure("fault-reboot", state=result.run.mission_state, boot=snap.boot,
                   autopilot=snap.behaviour.value)
     assert snap.boot == 1 and snap.online
@@ -322,8 +360,8 @@ def test_a_killed_service_restarts_without_taking_control_and_resumes_its_estima
             first.kill()
             first.wait(timeout=30)
         killed = sorted(runs.glob("run-*"))[0]
-        _wait_for(lambda: sitl.autopilot.snapshot().behaviour is Behaviour.HOLD, 10.0,
-                  "the autopilot's offboard-loss failsafe")
+        _wait_for(lambda: sitl.autopilot.snapshot().behaviour is Behaviour.POSITION, 10.0,
+                  "the autopilot's offboard-loss fallback")
         second = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                                   text=True)
         try:
@@ -344,9 +382,8 @@ def test_a_killed_service_restarts_without_taking_control_and_resumes_its_estima
     events = _events_of(restarted)
     resumed = [e for e in events if e["event"] == "resumed"]
     assert resumed and resumed[0]["confirmed"] >= 1
-    assert not [e for e in events if e["event"] == "command" and e["kind"] in (
-        "arm", "takeoff", "start_offboard", "hold", "land", "rtl")]
-    assert snap.behaviour is Behaviour.HOLD and snap.armed  # nobody took the vehicle back
+    _assert_no_control_taken(events, 0.0)  # PX4 may return to OFFBOARD on "hold here"
+    assert snap.behaviour in (Behaviour.POSITION, Behaviour.OFFBOARD) and snap.armed
     replayed = replay_run(killed, tmp_path / "replayed")  # the killed run's recording replays
     assert replayed.steps > 20 and len(replayed.tracks) >= 1
     record_figure("fault-kill-restart", resumed_confirmed=resumed[0]["confirmed"],

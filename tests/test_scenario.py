@@ -327,7 +327,7 @@ def test_sitl_tables_default_to_px4_sitl_home_and_a_level_90_degree_camera() -> 
     assert (s.camera.fx_px, s.camera.fy_px, s.camera.cx_px, s.camera.cy_px) == (
         320.0, 320.0, 319.5, 239.5)
     assert (s.vehicle.flavour, s.vehicle.altitude_m, s.vehicle.offboard_failsafe) == (
-        "px4", 8.0, "hold")
+        "px4", 8.0, "position")
     assert s.targets.tag_size_m == 0.5
 
 

@@ -144,8 +144,9 @@ def test_pilot_override_and_link_cut(sitl: tuple[MockAutopilot, int]) -> None:
             assert np.linalg.norm(autopilot.snapshot().vehicle.position_ned - held_ned) < 1.0
             if autopilot.config.flavour is not Flavour.PX4:
                 return  # an ArduPilot in GUIDED has no offboard-loss failsafe to show
-            # Back in OFFBOARD, the link is cut: setpoints stop arriving, PX4 falls back to its
-            # failsafe within COM_OF_LOSS_T and stays there when the link comes back.
+            # Back in OFFBOARD, the link is cut: setpoints stop arriving, PX4 falls back to
+            # Position mode within COM_OF_LOSS_T. OFFBOARD is still the mode asked for, so when
+            # the link comes back with MAVSDK's setpoints PX4 returns to it by itself.
             await _start_offboard(drone, autopilot)
             await _until(drone.tel.subscribe_flight_mode(), lambda m: m == FlightMode.OFFBOARD, 5)
             cut_at = autopilot.clock.now_s()
@@ -153,10 +154,13 @@ def test_pilot_override_and_link_cut(sitl: tuple[MockAutopilot, int]) -> None:
             while autopilot.snapshot().behaviour is Behaviour.OFFBOARD:
                 await asyncio.sleep(0.05)
             assert autopilot.clock.now_s() - cut_at < 1.0 + 0.5
-            assert autopilot.snapshot().behaviour is Behaviour.HOLD
-            while autopilot.clock.now_s() < cut_at + 6.0:
-                await asyncio.sleep(0.1)
-            assert autopilot.snapshot().behaviour is Behaviour.HOLD
+            assert autopilot.snapshot().behaviour is Behaviour.POSITION
+            while (autopilot.snapshot().behaviour is Behaviour.POSITION
+                   and autopilot.clock.now_s() < cut_at + 10.0):
+                await asyncio.sleep(0.05)
+            assert autopilot.snapshot().behaviour is Behaviour.OFFBOARD
+            assert autopilot.clock.now_s() > cut_at + 5.0  # not before the link came back
+            assert "failsafe: offboard setpoints back, offboard" in autopilot.statustexts
 
     started = time.monotonic()
     asyncio.run(flight())

@@ -10,7 +10,7 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.geo import LocalNed
-from sitl.autopilot import AutopilotConfig, Failsafe, MockAutopilot
+from sitl.autopilot import FORCE_MAGIC, AutopilotConfig, Failsafe, MockAutopilot
 from sitl.clock import SimClock
 from sitl.link import UdpLink
 from sitl.modes import Behaviour, Flavour, decode_custom_mode, encode
@@ -119,26 +119,117 @@ def test_offboard_is_refused_without_a_setpoint_stream(client: Client, px4: Mock
     assert _px4_mode(client, Behaviour.OFFBOARD) == ACCEPTED
 
 
+def _await_behaviour(client: Client, autopilot: MockAutopilot, behaviour: Behaviour,
+                     setpoint_ned: tuple[float, float, float] | None = None,
+                     timeout_wall_s: float = 5.0) -> None:
+    """Read (and, with setpoint_ned, stream that setpoint) until the autopilot is in behaviour."""
+    deadline = time.monotonic() + timeout_wall_s
+    while autopilot.snapshot().behaviour is not behaviour:
+        assert time.monotonic() < deadline, f"not in {behaviour.value}: {autopilot.snapshot()}"
+        if setpoint_ned is None:
+            client.messages(0.02)
+        else:
+            client.stream_setpoints(setpoint_ned, 0.02)
+
+
+def test_px4_falls_back_to_position_mode_by_default(client: Client, px4: MockAutopilot) -> None:
+    client.send(client.mav.param_request_read_encode(1, 1, b"COM_OBL_RC_ACT", -1))
+    assert client.wait_type("PARAM_VALUE").param_value == 0.0  # PX4's 0: Position mode
+    _fly_up(client, px4)
+    hb = client.wait_for(lambda m: m.get_type() == "HEARTBEAT" and m.custom_mode != (6 << 16))
+    assert hb.custom_mode == (3 << 16)  # OFFBOARD -> POSCTL, no setpoints for COM_OF_LOSS_T
+    assert px4.snapshot().armed
+    assert "failsafe: offboard setpoints lost, position" in px4.statustexts
+
+
 @pytest.mark.parametrize(
     ("failsafe", "expected"),
     [
+        (Failsafe.POSITION, Behaviour.POSITION),
         (Failsafe.HOLD, Behaviour.HOLD),
         (Failsafe.LAND, Behaviour.LAND),
         (Failsafe.RTL, Behaviour.RTL),
     ],
 )
-def test_offboard_loss_leaves_offboard_to_the_failsafe(
+def test_offboard_loss_falls_back_and_returns_to_offboard_when_the_setpoints_come_back(
     client: Client, failsafe: Failsafe, expected: Behaviour
 ) -> None:
     autopilot = _start(client, armable_after_s=0.0, offboard_failsafe=failsafe)
     try:
         _fly_up(client, autopilot)
-        assert autopilot.snapshot().behaviour is Behaviour.OFFBOARD
-        client.messages(0.2)  # no setpoints for 2 s of simulated time
-        assert autopilot.snapshot().behaviour is expected
+        _await_behaviour(client, autopilot, expected)
         assert any("offboard setpoints lost" in t for t in autopilot.statustexts)
+        _await_behaviour(client, autopilot, Behaviour.OFFBOARD, setpoint_ned=(3.0, 0.0, -5.0))
+        assert autopilot.snapshot().armed
+        assert "failsafe: offboard setpoints back, offboard" in autopilot.statustexts
+        client.fly_to((3.0, 0.0, -5.0), 0.3, 20.0)  # it flies the setpoints again
     finally:
         autopilot.stop()
+
+
+@pytest.mark.parametrize(("value", "expected"), [
+    (3.0, Behaviour.RTL), (4.0, Behaviour.LAND), (5.0, Behaviour.HOLD),
+])
+def test_com_obl_rc_act_takes_px4s_values(client: Client, px4: MockAutopilot, value: float,
+                                          expected: Behaviour) -> None:
+    client.send(client.mav.param_set_encode(1, 1, b"COM_OBL_RC_ACT", value,
+                                            mavlink.MAV_PARAM_TYPE_REAL32))
+    assert client.wait_type("PARAM_VALUE").param_value == value
+    _fly_up(client, px4)
+    _await_behaviour(client, px4, expected)
+
+
+@pytest.mark.parametrize("change", ["mode request", "pilot switch"])
+def test_a_mode_change_during_the_fallback_means_no_return_to_offboard(
+    client: Client, px4: MockAutopilot, change: str
+) -> None:
+    _fly_up(client, px4)
+    _await_behaviour(client, px4, Behaviour.POSITION)
+    if change == "mode request":
+        assert _px4_mode(client, Behaviour.HOLD) == ACCEPTED
+        expected = Behaviour.HOLD
+    else:  # the switch to the mode it is already in still replaces the intended mode
+        px4.pilot_set_mode(Behaviour.POSITION)
+        expected = Behaviour.POSITION
+    client.stream_setpoints((3.0, 0.0, -5.0), 0.5)  # 5 s of setpoints again: ignored
+    assert px4.snapshot().behaviour is expected
+    assert _mode(client) is expected
+    assert "failsafe: offboard setpoints back, offboard" not in px4.statustexts
+
+
+def test_a_fallback_that_landed_and_disarmed_does_not_return(client: Client) -> None:
+    autopilot = _start(client, armable_after_s=0.0, offboard_failsafe=Failsafe.LAND)
+    try:
+        _fly_up(client, autopilot, alt_m=2.0)
+        client.wait_for(lambda m: m.get_type() == "HEARTBEAT"
+                        and not m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED, 10.0)
+        client.stream_setpoints((0.0, 0.0, -2.0), 0.5)
+        snap = autopilot.snapshot()
+        assert snap.behaviour is Behaviour.LAND and not snap.armed
+    finally:
+        autopilot.stop()
+
+
+def test_a_disarm_ends_the_fallback(client: Client, px4: MockAutopilot) -> None:
+    _fly_up(client, px4)
+    _await_behaviour(client, px4, Behaviour.POSITION)
+    assert client.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, FORCE_MAGIC).result == ACCEPTED
+    assert client.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1).result == ACCEPTED
+    client.stream_setpoints((0.0, 0.0, -2.0), 0.5)
+    snap = px4.snapshot()
+    assert snap.behaviour is Behaviour.POSITION and snap.armed
+
+
+def test_ardupilot_guided_has_no_offboard_loss_failsafe(client: Client, copter: MockAutopilot
+                                                       ) -> None:
+    assert client.command(mavlink.MAV_CMD_DO_SET_MODE, CUSTOM, 4).result == ACCEPTED  # GUIDED
+    assert client.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1).result == ACCEPTED
+    assert client.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 4.0).result == ACCEPTED
+    client.stream_setpoints((-4.0, 3.0, -4.0), 0.3)  # above home (local NED: the EKF origin)
+    client.messages(0.3)  # 3 s without setpoints: GUIDED holds the last one
+    snap = copter.snapshot()
+    assert snap.behaviour is Behaviour.OFFBOARD and snap.armed and not snap.vehicle.on_ground
+    assert not [t for t in copter.statustexts if t.startswith("failsafe")]
 
 
 def test_type_mask_position_velocity_and_yaw(client: Client, px4: MockAutopilot) -> None:

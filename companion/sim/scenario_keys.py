@@ -194,8 +194,9 @@ SECTION_KEYS: dict[str, tuple[Key, ...]] = {
              "SITL: return altitude (PX4 RTL_RETURN_ALT), metres"),
         Key("offboard_loss_timeout_s", Float(gt=0), 1.0,
              "SITL: setpoint silence before the offboard failsafe (PX4 COM_OF_LOSS_T), seconds"),
-        Key("offboard_failsafe", Choice("hold", "land", "rtl"), "hold",
-             "SITL: what PX4 does when offboard setpoints stop (COM_OBL_RC_ACT)"),
+        Key("offboard_failsafe", Choice("position", "hold", "land", "rtl"), "position",
+             "SITL: the mode PX4 falls back to when offboard setpoints stop (COM_OBL_RC_ACT); "
+             "it returns to OFFBOARD when they come back unless the mode was changed meanwhile"),
         Key("armable_after_s", Float(ge=0),
              Derived("40 for ardupilot, 2 for px4 (real PX4 SIH: 33-37)"),
              "SITL: estimator warm-up after boot before arming is allowed, seconds"),

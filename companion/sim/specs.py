@@ -157,7 +157,7 @@ class VehicleSpec:
     takeoff_altitude_m: float
     rtl_altitude_m: float
     offboard_loss_timeout_s: float
-    offboard_failsafe: Literal["hold", "land", "rtl"]
+    offboard_failsafe: Literal["position", "hold", "land", "rtl"]
     # None: the flavour's measured value (sitl.autopilot.FLAVOUR_DEFAULTS), chosen at start-up,
     # so that a spec whose flavour is replaced behaves as the other firmware.
     armable_after_s: float | None
