@@ -290,8 +290,9 @@ def _sweeps_needed(scenario: Scenario, search_s: float) -> int:
 class _Pilot:
     """A pilot who selects OFFBOARD again when the service stopped searching mid-air.
 
-    Once the vehicle has been in OFFBOARD, whenever it is armed, in the air and holding (the
-    autopilot's offboard failsafe, after the service stopped its stream) for PILOT_REACTION_S
+    Once the vehicle has been in OFFBOARD, whenever it is armed, in the air and holding or in
+    Position (the autopilot's offboard failsafe, after the service stopped its stream; PX4's
+    Position fallback usually returns to OFFBOARD by itself first) for PILOT_REACTION_S
     while setpoints stream again (the service, in READY, streams "hold here"), the pilot flips
     the mode switch to OFFBOARD: the service then searches on (it never does so by itself after
     a link loss). Polls every PILOT_POLL_S simulated seconds, in a thread.
@@ -322,7 +323,8 @@ class _Pilot:
             snap = self._autopilot.snapshot()
             searched |= snap.behaviour is Behaviour.OFFBOARD
             holding = (searched and snap.online and snap.armed and not snap.vehicle.on_ground
-                       and snap.behaviour is Behaviour.HOLD and snap.setpoints_streaming)
+                       and snap.behaviour in (Behaviour.HOLD, Behaviour.POSITION)
+                       and snap.setpoints_streaming)
             if not holding:
                 holding_since_s = None
                 continue
