@@ -55,21 +55,11 @@ def associate(
     claimed = np.zeros(n_tracks, dtype=np.bool_)
     rows = np.minimum(np.searchsorted(track_ids, est_labels), n_tracks - 1)
     claims = np.flatnonzero(track_ids[rows] == est_labels)
-    order = claims
-    if claims.size > 1:
-        seen = np.zeros(n_tracks, dtype=np.bool_)
-        repeated = False
-        for c in claims:
-            repeated = repeated or seen[rows[c]]
-            seen[rows[c]] = True
-        if repeated:
-            dist = np.empty(claims.size)
-            for k in range(claims.size):
-                c = claims[k]
-                r = rows[c]
-                dist[k] = _gate_sq(track_means[r], track_covs[r], est_means[c], est_covs[c])
-            order = claims[np.argsort(dist, kind="mergesort")]
-    for c in order:
+    dist = np.empty(claims.size)
+    for k in range(claims.size):
+        c, r = claims[k], rows[claims[k]]
+        dist[k] = _gate_sq(track_means[r], track_covs[r], est_means[c], est_covs[c])
+    for c in claims[np.argsort(dist, kind="mergesort")]:  # of one label's estimates, the closer
         r = rows[c]
         if not claimed[r]:
             claimed[r] = True
@@ -102,16 +92,14 @@ def associate(
 @njit(cache=True, nogil=True)
 def hold(
     supported_by: IntArray, idle: IntArray, track_ids: IntArray, labels: IntArray,
-    weights: FloatArray, no_label: int,
+    weights: FloatArray,
 ) -> None:
     """supported_by[row] = the heaviest component labelled with the track's id (ties: the
-    first), for each idle row whose id labels a component; in place."""
+    first), for each idle row whose id labels a component; in place (ids are never NO_LABEL)."""
     for row in idle:
         best = -1
         for i in range(labels.shape[0]):
-            if labels[i] == track_ids[row] and labels[i] != no_label and (
-                best < 0 or weights[i] > weights[best]
-            ):
+            if labels[i] == track_ids[row] and (best < 0 or weights[i] > weights[best]):
                 best = i
         if best >= 0:
             supported_by[row] = best

@@ -317,7 +317,7 @@ def maintain(
     # Hold: a confirmed track with no estimate is kept by its labelled component, if it survives.
     idle = ((supported_by < 0) & tracks.confirmed).nonzero()[0]
     if idle.size:
-        kernels.hold(supported_by, idle, tracks.ids, mix.labels, mix.weights, NO_LABEL)
+        kernels.hold(supported_by, idle, tracks.ids, mix.labels, mix.weights)
     hit = np.zeros(tracks.size, dtype=bool)
     hit[assigned[has_estimate]] = detected[est_rows[has_estimate]]
 
