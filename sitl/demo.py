@@ -112,8 +112,10 @@ async def fly(scenario: Scenario, *, speedup: float, out_dir: Path, faults: str 
         run = await service.run(stop)
         end_s = sitl.clock.now_s()
         final = sitl.autopilot.snapshot()
-    frame = service.pipeline.frame
-    tags = sitl.world.tags(end_s)
+    frame, state = service.pipeline.frame, service.pipeline.state
+    # The tracks are the estimate at the last step, so they are scored against where the
+    # targets were then; by end_s (after the service's shutdown) movers have walked on.
+    tags = sitl.world.tags(end_s if state is None else state.t_s)
     truth = []
     for tag in tags:
         lat, lon, _ = scenario.geo.local_ned().ned_to_geodetic(tag.north_m, tag.east_m, 0.0)
