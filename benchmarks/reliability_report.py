@@ -119,7 +119,11 @@ def report(figures: dict[str, dict[str, Any]]) -> str:
               "camera). `view-load` is five browsers on the operator's page for a whole field "
               "mission in real time (`tests/test_view_load_sitl.py`: the view's CPU share of a "
               "core, the longest setpoint gap while searching, the page that stopped reading "
-              "dropped).",
+              "dropped). `soak-30min` and `many-tags-*` are timing figures of the machine that "
+              "ran them: one that cannot run the service at four times real time shows setpoint "
+              "gaps in simulated time (0.3 s simulated is 75 ms of wall time) and steps skipped "
+              "(the newest frame is taken), and one slower than the camera shows frames dropped; "
+              "`soak-short` and `view-load` run in real time.",
               "",
               "| run | measured |",
               "|---|---|"]
