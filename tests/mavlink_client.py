@@ -42,6 +42,21 @@ class Client:
             out.extend(self._receive())
         return out
 
+    def messages_until(self, kind: str, count: int,
+                       timeout_s: float) -> list[mavlink.MAVLink_message]:
+        """Everything received until `count` messages of a type have come (a loaded autopilot
+        sends fewer a second), or AssertionError after timeout_s of wall time."""
+        out: list[mavlink.MAVLink_message] = []
+        seen = 0
+        deadline = time.monotonic() + timeout_s
+        while seen < count:
+            if time.monotonic() >= deadline:
+                raise AssertionError(f"{seen} of {count} {kind} messages within {timeout_s} s")
+            new = self._receive()
+            out.extend(new)
+            seen += sum(m.get_type() == kind for m in new)
+        return out
+
     def _receive(self) -> list[mavlink.MAVLink_message]:
         """The messages of one datagram (none when the socket times out)."""
         try:
