@@ -6,8 +6,8 @@ the mock autopilot and the rendered camera, searching by lawn mower (or the --pl
 speed-up achieved; the process's RSS (peak, and the slope of a least-squares line through the
 samples after the first 20 %, in MB per simulated hour); the filter's component count against its
 cap; the setpoint stream's intervals in simulated time as the service sent them (events.jsonl) and
-as the autopilot received them (median, p99, max gap, and the gaps over 1.5 periods: the target is
-none) and how late the event loop woke; the size of the estimator's checkpoint; the blind estimator
+as the autopilot received them (median, p99, max gap, and the gaps over 1.5 periods) and how late
+the event loop woke; the size of the estimator's checkpoint; the blind estimator
 steps; how the mission went; the confirmed tracks against the truth at the end.
 
     python benchmarks/soak.py [--minutes 30] [--speedup 4] [--targets 30] [--clutter 0.2]
