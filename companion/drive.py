@@ -70,7 +70,7 @@ def frame_observation(view: VehicleView, capture_s: float, image: NDArray[np.uin
         return Observation.nothing(capture_s, "on the ground")
     sample = view.poses.at(capture_s)
     if sample is None:
-        glitch = view.gate.refusing_since_s is not None
+        glitch = view.gate.refused_around(capture_s)
         return Observation.nothing(capture_s, "implausible position (GPS glitch?)" if glitch
                                    else "no pose at the capture time")
     height_m, height_source = view.height_at(capture_s, sample.alt_rel_m,

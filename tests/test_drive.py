@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from companion.config import ServiceConfig, load_config
-from companion.drive import Observation, drive, observe
+from companion.drive import Observation, drive, frame_observation, observe
 from companion.errors import InputError
 from companion.flightlog import FlightLog
 from companion.pipeline import Pipeline, StepRecord, camera_model
@@ -81,6 +81,9 @@ def test_a_gps_glitch_in_a_log_is_refused_as_live(config: ServiceConfig) -> None
     assert after.pose.lon_deg == pytest.approx(before.pose.lon_deg, abs=1e-9)
     assert after.pose.lat_deg - before.pose.lat_deg == pytest.approx(10.0 / 111_320.0, rel=1e-3)
     assert telemetry.view.rejected["implausible"] == 20
+    # a frame captured in the glitch but processed after it (a loaded computer) is blind for it
+    late = frame_observation(telemetry.view, 5.0, image, config.pose)
+    assert late.blind == "implausible position (GPS glitch?)"
 
 
 def test_a_clean_log_gives_every_frame_its_interpolated_pose(config: ServiceConfig) -> None:

@@ -162,12 +162,7 @@ def test_camera_faults_and_a_gps_glitch_lose_no_track_and_confirm_no_ghost(
         blind = {s["blind"] for s in during}
         if reason == "corrupt":  # a frame that does not decode never reaches the pipeline
             assert blind == {"no frame"}, blind
-        elif reason.startswith("implausible"):
-            # Every frame blind, for the glitch. One captured in it but processed (on a loaded
-            # machine) after the positions became plausible again finds no pose at its capture
-            # time: the refused positions are not in the history, and the gate no longer refuses.
-            assert reason in blind and blind <= {reason, "no pose at the capture time"}, blind
-        else:
+        else:  # a glitch's frames too, however late (on a loaded machine) they are processed
             assert blind == {reason}, blind
         kept = set(before[-1]["confirmed_ids"])
         assert all(kept <= set(s["confirmed_ids"]) for s in during), reason

@@ -30,12 +30,12 @@ def _latlon(north_m: float, east_m: float) -> tuple[float, float]:
             LON0 + east_m / (M_PER_DEG * math.cos(math.radians(LAT0))))
 
 
-def _flight(gate: PositionGate, glitch: tuple[float, float, float], speed_m_s: float = 5.0
-            ) -> list[bool]:
-    """10 Hz positions of a vehicle flying east and turning north at 10 s, with a jump of
-    glitch = (north_m, start_s, duration_s) added; each sample's verdict."""
+def _flight(gate: PositionGate, glitch: tuple[float, float, float], speed_m_s: float = 5.0,
+            seconds: float = 30.0) -> list[bool]:
+    """10 Hz positions for seconds of a vehicle flying east and turning north at 10 s, with a
+    jump of glitch = (north_m, start_s, duration_s) added; each sample's verdict."""
     verdicts = []
-    for k in range(300):
+    for k in range(round(10 * seconds)):
         t_s = 0.1 * k
         if t_s < 10.0:
             north, east, vel = 0.0, speed_m_s * t_s, (0.0, speed_m_s)
@@ -55,6 +55,19 @@ def test_a_20_m_jump_for_3_s_is_refused_and_the_return_accepted() -> None:
     glitch = (t_s >= 8.0 - 1e-9) & (t_s < 11.0 - 1e-9)
     assert not verdicts[glitch].any() and verdicts[~glitch].all()
     assert gate.refused == int(glitch.sum()) and gate.accepted_jumps == 0
+    # judged at any later time, by the samples around it: from the last plausible one (7.9 s)
+    # to the first plausible again (11.0 s)
+    assert [gate.refused_around(t) for t in (7.9, 7.95, 9.0, 10.99, 11.0, 12.0)] == [
+        False, True, True, True, False, False]
+
+
+def test_a_glitch_still_refused_covers_every_time_since_its_start() -> None:
+    gate = PositionGate(gate_m=8.0, accept_after_s=10.0)
+    _flight(gate, (20.0, 8.0, 30.0), seconds=9.0)
+    assert gate.refusing_since_s is not None
+    assert not gate.refused_around(7.5) and gate.refused_around(8.5) and gate.refused_around(20.0)
+    gate.reset()
+    assert not gate.refused_around(8.5)
 
 
 def test_a_clean_flight_is_never_refused_and_a_jump_that_stays_is_believed() -> None:

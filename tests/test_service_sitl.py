@@ -51,6 +51,21 @@ def _assert_every_tag_found(result: DemoResult) -> None:
     assert np.all(gaps.min(axis=1) <= 3.0)  # no confirmed track far from every target
 
 
+def _assert_let_go_at_once(events: list[dict[str, Any]], reported_s: float,
+                           released_s: float) -> None:
+    """The service let go (released_s) on the first heartbeat that reported the pilot's mode
+    (reported_s, the autopilot's clock) and at once: no setpoint after the mode it saw but the
+    one that may have been on its way.
+
+    Counted in setpoints, not seconds: at 4x a 110 ms stall of this 2-core machine is 0.44 s of
+    the run's clock, and the service's loop stalls with the rest of it."""
+    assert 0.0 <= released_s - reported_s < HEARTBEAT_PERIOD_S
+    seen = [e for e in events if e["event"] == "mode" and e["t_s"] <= released_s][-1]
+    assert seen["mode"] != "OFFBOARD"
+    late = [e for e in events if e["event"] == "setpoint" and seen["t_s"] <= e["t_s"] <= released_s]
+    assert len(late) <= 1, late
+
+
 @pytest.mark.parametrize("flavour", ["px4", "ardupilot"])
 def test_field_experiment_mission(flavour: Literal["px4", "ardupilot"], tmp_path: Path) -> None:
     scenario = _scenario(flavour)
@@ -132,8 +147,6 @@ def test_pilot_takeover_stops_commanding_and_estimating_goes_on(tmp_path: Path) 
     released = [e for e in events if e["event"] == "command" and e["kind"] == "stop_setpoints"]
     assert len(released) == 1
     snap = result.autopilot
-    # The mode reaches the service in the autopilot's next heartbeat; the service lets go within
-    # one setpoint period of that (at once: the mode change wakes its control loop).
     reported_s = snap.behaviour_reported_clock_s
     assert reported_s is not None
     assert takeover_s <= reported_s <= takeover_s + HEARTBEAT_PERIOD_S + SITL_LATE_S
@@ -141,8 +154,8 @@ def test_pilot_takeover_stops_commanding_and_estimating_goes_on(tmp_path: Path) 
     record_figure("fault-pilot-mode", release_after_heartbeat_s=round(release_s, 3),
                   release_after_switch_s=round(released[0]["t_s"] - takeover_s, 3),
                   autopilot=snap.behaviour.value, state=result.run.mission_state)
-    assert 0.0 <= release_s <= SETPOINT_PERIOD_S
-    assert snap.last_setpoint_clock_s <= released[0]["t_s"] + SETPOINT_PERIOD_S
+    _assert_let_go_at_once(events, reported_s, released[0]["t_s"])
+    assert not [e for e in events if e["event"] == "setpoint" and e["t_s"] > released[0]["t_s"]]
     assert snap.behaviour is Behaviour.POSITION  # never taken back
     assert result.run.mission_state == "pilot_has_control"
     assert not [e for e in events if e["event"] == "command" and e["kind"] == "start_offboard"
@@ -177,7 +190,7 @@ def test_ardupilot_pilot_mode_is_never_overridden(mode: str, at_s: float, phase:
     snap = result.autopilot
     assert snap.behaviour is Behaviour(mode)  # never taken back
     assert snap.behaviour_reported_clock_s is not None
-    assert 0.0 <= takeover["t_s"] - snap.behaviour_reported_clock_s <= SETPOINT_PERIOD_S
+    _assert_let_go_at_once(events, snap.behaviour_reported_clock_s, takeover["t_s"])
     assert result.run.mission_state == "pilot_has_control"
 
 
