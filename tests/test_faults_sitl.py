@@ -38,7 +38,6 @@ SPEEDUP = 4.0
 # Link faults are judged against 0.8 s of telemetry silence: at 4x that is 0.2 s of wall time,
 # which a loaded 2-core machine can stall for. At 2x it is 0.4 s.
 LINK_SPEEDUP = 2.0
-SETPOINT_PERIOD_S = 0.1
 GHOST_M = 3.0  # a confirmed track further than this from every target is a ghost
 
 
@@ -59,13 +58,14 @@ def _texts(result: DemoResult, event: str = "command") -> list[tuple[float, str]
 def _assert_no_control_taken(events: list[dict[str, Any]], since_s: float) -> None:
     """After since_s: no arm, take-off or mode request, and the service commands only while the
     heartbeat shows OFFBOARD: each planner stream starts after an OFFBOARD mode event, its
-    setpoints stop within a setpoint period of any other mode, and a mission end (hold, land,
-    rtl) comes only in OFFBOARD. PX4 returns to OFFBOARD by itself when setpoints come back
-    after its offboard-loss fallback; the service then searches on as after a pilot's OFFBOARD."""
-    mode, mode_at_s = None, -math.inf
+    setpoints stop at any other mode (but the one that may have been on its way: counted, not
+    timed, as a stall of this machine delays its event), and a mission end (hold, land, rtl)
+    comes only in OFFBOARD. PX4 returns to OFFBOARD by itself when setpoints come back after
+    its offboard-loss fallback; the service then searches on as after a pilot's OFFBOARD."""
+    mode, since_mode = None, 0  # the mode last seen; planner setpoints since it came
     for e in events:
-        if e["event"] == "mode":
-            mode, mode_at_s = e["mode"], e["t_s"]
+        if e["event"] == "mode" and e["mode"] != mode:
+            mode, since_mode = e["mode"], 0
         if e["t_s"] <= since_s:
             continue
         if e["event"] == "command":
@@ -73,7 +73,8 @@ def _assert_no_control_taken(events: list[dict[str, Any]], since_s: float) -> No
             if e["kind"] in ("hold", "land", "rtl") or e.get("stream") == "planner":
                 assert mode == "OFFBOARD", (mode, e)
         elif e["event"] == "setpoint" and e["mode"] == "searching":
-            assert mode == "OFFBOARD" or e["t_s"] - mode_at_s <= SETPOINT_PERIOD_S, (mode, e)
+            since_mode += 1
+            assert mode == "OFFBOARD" or since_mode <= 1, (mode, e)
 
 
 def _assert_left_to_the_pilot(result: DemoResult, since_s: float) -> None:
@@ -338,7 +339,7 @@ def _events_of(run_dir: Path) -> list[dict[str, Any]]:
 
 def test_a_killed_service_restarts_without_taking_control_and_resumes_its_estimate(
         tmp_path: Path) -> None:
-    """`kill -9` mid-flight, as systemd then restarts it: the killed run replays, the new
+    """`kill -9` mid-search, as systemd then restarts it: the killed run replays, the new
     process takes no automatic step, and it carries on from the estimator's checkpoint."""
     scenario = load_scenario(sitl_scenarios()["field-5-tags"])
     runs = tmp_path / "runs"
@@ -356,7 +357,11 @@ def test_a_killed_service_restarts_without_taking_control_and_resumes_its_estima
                 except (IndexError, OSError, EOFError, pickle.UnpicklingError, KeyError):
                     return False  # not written yet, or being replaced
                 return state is not None and int(state.tracks.confirmed.sum()) >= 1
-            _wait_for(a_confirmed_track_is_saved, 120.0, "a confirmed track in a checkpoint")
+
+            def searching() -> bool:  # not still climbing: PX4 holds when its take-off ends
+                return sitl.autopilot.snapshot().behaviour is Behaviour.OFFBOARD
+            _wait_for(lambda: a_confirmed_track_is_saved() and searching(), 120.0,
+                      "a confirmed track in a checkpoint, searching in OFFBOARD")
         finally:
             first.kill()
             first.wait(timeout=30)
