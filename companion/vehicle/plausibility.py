@@ -69,6 +69,7 @@ class PositionGate:
         return any(from_s < t_s < until_s for from_s, until_s in self._glitches)
 
     def _plausible_again(self, t_s: float) -> None:
+        """A plausible sample at t_s: a glitch in progress ends there."""
         if self.refusing_since_s is not None:
             self._glitches.append((self._glitch_from_s, t_s))
             self.refusing_since_s = None
