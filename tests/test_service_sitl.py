@@ -24,7 +24,6 @@ from sitl.runner import autopilot_config
 pytestmark = pytest.mark.sitl
 
 SPEEDUP = 4.0
-SETPOINT_PERIOD_S = 0.1  # mission.setpoint_rate_hz = 10
 HEARTBEAT_PERIOD_S = 1.0  # the mode reaches the service in the autopilot's heartbeat
 SITL_LATE_S = 0.1  # how late the SITL autopilot's loop may send what is due, on a loaded machine
 
