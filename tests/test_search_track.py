@@ -107,6 +107,22 @@ def test_a_component_of_a_confirmed_track_is_not_searched_for() -> None:
     assert waypoint is not None and not np.allclose(waypoint, [120.0, 120.0])  # it sweeps
 
 
+def test_prior_mass_worn_down_with_no_track_is_still_searched_for_where_the_prior_put_it() -> None:
+    planner = make_search_track(WORLD, SearchTrackParams(view_radius_m=25.0, unseen_targets=0.0))
+    mean, cov = np.array([[120.0, 120.0]]), np.array([50.0 * np.eye(2)])
+    _, progress = planner.next_waypoint(np.zeros(2), make_mixture([1.0], mean, cov), NO_TRACKS,
+                                        WORLD, 0, 0.0)
+    # The limited-FOV update wore the component down to 0.05 and no track holds the target.
+    worn = make_mixture([0.05], mean, cov)
+    waypoint, lost = planner.next_waypoint(np.zeros(2), worn, NO_TRACKS, WORLD, progress, 1.0)
+    assert lost.left > 0.9 and not planner.finished(lost)
+    assert waypoint is not None and np.hypot(*(waypoint - mean[0])) < planner.seen_m
+    # A confirmed track near the prior's mean holds that target: nothing is lost.
+    track = _one_track(3, [118.0, 121.0], var_m2=1.0, seen_t_s=1.0)
+    _, held = planner.next_waypoint(np.zeros(2), worn, track, WORLD, progress, 1.0)
+    assert held.left < 0.1
+
+
 def _one_track(track_id: int, xy: list[float], var_m2: float, seen_t_s: float) -> Tracks:
     """A confirmed track alone at xy with that position variance."""
     empty = Tracks.empty(2, 4)

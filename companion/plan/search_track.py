@@ -4,9 +4,10 @@ Pure: a function of (robot position, mixture, tracks, world, progress, time) -> 
 progress), with no clock, no randomness and no I/O. The search area is covered by a grid of
 cells, each holding the expected number of targets on it that no scan has found yet:
 `unseen_targets` spread evenly over the area (or, if more, the density of the confirmed tracks
-beyond the initial belief's count over the ground seen, times the area), times (1 - p_D) for each
-look at the cell (a look: the cell enters the sensor's sure view, or stays in it for another
-`look_s` seconds). The goals are
+beyond the initial belief's count over the ground seen, times the area), plus each initial
+component's weight that no confirmed track or component near it holds any more, spread as that
+component was, times (1 - p_D) for each look at the cell (a look: the cell enters the sensor's
+sure view, or stays in it for another `look_s` seconds). The goals are
 
 - search: the mixture's components that support no confirmed track (the PHD mass no detection
   has explained), valued by their weight, and the nearest point of a sweep over unseen ground
@@ -25,8 +26,8 @@ its first goal. A goal, the sweep's next point too, is flown to until it is reac
 point whose cells have all been looked at), or worth less than half what it was planned at,
 unless a goal worth much more turns up, so that the robot neither dithers between goals whose
 values change as it flies nor nibbles at small near goals for ever (a sweep point replanned at
-every call let the robot hover between a far sweep point and the tracks near it). Components in
-the sure view now are not goals: the sensor is looking at them.
+every call let the robot hover between a far sweep point and the tracks near it). Components whose
+2-sigma disk the sure view holds now are not goals: the sensor is looking at them.
 """
 
 from __future__ import annotations
@@ -59,6 +60,7 @@ INTERRUPT_VALUE = 0.3  # a new goal worth this much, and INTERRUPT_RATIO times t
 INTERRUPT_RATIO = 3.0  # tour being flown holds, makes the planner plan a new tour at once
 MIN_SEEN_SHARE = 0.25  # the density of found targets is trusted once this much was seen
 HALF_VALUE_LOOKS = 12.0  # a minute in view at look_s = 5 s halves a whole target's value
+LOST_SIGMAS = 3.0  # a track or component this many sigmas from an initial component holds its mass
 MAX_CELLS = 2500  # the grid is made coarser than view/2 if the area would need more cells
 
 
@@ -119,6 +121,9 @@ class SearchProgress:
     tour_xy: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))  # (m, 2) goals left
     tour_values: FloatArray = field(default_factory=lambda: np.zeros(0))  # their planned values
     believed: float = 0.0  # targets the mixture expected at the first call (its sum of weights)
+    prior: Mixture | None = None  # the mixture at the first call
+    prior_share: FloatArray = field(default_factory=lambda: np.zeros((0, 0)))  # (n, m) its
+    # components' shares on each cell
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -136,13 +141,26 @@ class SearchTrack:
     horizon_m: float
     area_xy: FloatArray  # (k, 2) the search area's polygon
 
-    def start(self, believed: float = 0.0) -> SearchProgress:
-        """The memory before the first call (the initial belief expecting `believed` targets):
-        nothing looked at, everything left to find."""
+    def start(self, belief: Mixture | None = None) -> SearchProgress:
+        """The memory before the first call from the initial belief (None: empty): nothing looked
+        at, everything left to find."""
         n = self.cells_xy.shape[0]
+        prior = belief if belief is not None else Mixture(
+            np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros(0, dtype=np.int64))
+        share = self._shares_on_cells(prior)
         return SearchProgress(np.zeros(n, dtype=np.int64), np.zeros(n, dtype=bool),
                               np.full(n, -math.inf), -math.inf, math.inf, False,
-                              believed=believed)
+                              believed=prior.total_weight, prior=prior, prior_share=share)
+
+    def _shares_on_cells(self, mixture: Mixture) -> FloatArray:
+        """(n, m) each component's share of its position mass on each cell (its density at the
+        cell's centre times the cell's area, normalised over the cells)."""
+        n, m = self.cells_xy.shape[0], mixture.size
+        if n == 0 or m == 0:
+            return np.zeros((n, m))
+        density = np.exp(-0.5 * _mahalanobis2(self.cells_xy, mixture))
+        share: FloatArray = density / np.maximum(density.sum(axis=0), 1e-300)
+        return share
 
     def next_waypoint(
         self, robot_xy: FloatArray, mixture: Mixture, tracks: Tracks, world: World,
@@ -150,14 +168,16 @@ class SearchTrack:
     ) -> tuple[FloatArray | None, SearchProgress]:
         """The first goal of the best plan from here (None: nothing worth flying to) and the
         memory after looking from robot_xy at t_s; progress 0 starts afresh."""
-        memory = self.start(mixture.total_weight) if isinstance(progress, int) else progress
+        memory = self.start(mixture) if isinstance(progress, int) else progress
         memory = self._look(robot_xy, memory, t_s)
         found = _found_ids(tracks)
-        unseen = self._unseen_mass(memory, found.size)
-        comp_xy, comp_value = self._component_goals(mixture, found, memory)
+        comp_xy, comp_value, comp_sd = self._component_goals(mixture, found, memory)
+        unseen = self._unseen_mass(memory, tracks, mixture)
         left = float(unseen.sum() + comp_value.sum())
-        # What the sensor surely sees now is being looked at: no need to fly to it.
-        away = np.hypot(*(comp_xy - robot_xy).T) > self.seen_m
+        # A component whose 2-sigma disk the sensor surely sees is being looked at: no need to fly
+        # to it; one wider is flown to until it is that well in view (or its mean reached).
+        sure_m = np.clip(self.params.view_radius_m - 2.0 * comp_sd, REACHED_M, self.seen_m)
+        away = np.hypot(*(comp_xy - robot_xy).T) > sure_m
         comp_xy, comp_value = comp_xy[away], comp_value[away]
         searched = memory.searched or left < self.params.stop_below
         memory = replace(memory, left=left, searched=searched)
@@ -185,14 +205,21 @@ class SearchTrack:
         looked_t_s = np.where(look, t_s, memory.looked_t_s)
         return replace(memory, looks=looks, in_view=in_view, looked_t_s=looked_t_s, t_s=t_s)
 
-    def _unseen_mass(self, memory: SearchProgress, found: int) -> FloatArray:
-        """(n,) expected targets on each cell that no look has found: unseen_targets spread evenly,
-        or more where the targets found so far on the ground seen say the area holds more."""
+    def _unseen_mass(self, memory: SearchProgress, tracks: Tracks,
+                     mixture: Mixture) -> FloatArray:
+        """(n,) expected targets on each cell that no look has found: unseen_targets spread evenly
+        (or more where the targets found so far on the ground seen say the area holds more), and
+        each initial component's mass that no confirmed track or component near it holds any more,
+        spread as that component was."""
         n = self.cells_xy.shape[0]
+        found = int(tracks.confirmed.sum())
         seen = float((memory.looks > 0).mean()) if n else 1.0
         beyond = max(found - memory.believed, 0.0)  # found beyond what the first belief held
         total = max(self.params.unseen_targets, beyond / max(seen, MIN_SEEN_SHARE))
-        miss: FloatArray = total / max(n, 1) * (1.0 - self.params.p_detect) ** memory.looks
+        shape = np.full(n, total / max(n, 1))
+        if memory.prior is not None and memory.prior.size:
+            shape += memory.prior_share @ _lost(memory.prior, tracks, mixture)
+        miss: FloatArray = shape * (1.0 - self.params.p_detect) ** memory.looks
         return miss
 
     def _cell_of(self, xy: FloatArray) -> IntArray:
@@ -211,20 +238,22 @@ class SearchTrack:
 
     def _component_goals(
         self, mixture: Mixture, found: IntArray, memory: SearchProgress
-    ) -> tuple[FloatArray, FloatArray]:
-        """Means and values of the components that support no confirmed track: their weight,
-        halved for every HALF_VALUE_LOOKS x weight (at most 1) looks already spent on the cell
-        under them, so that a component the filter does not explain cannot hold the robot, and a
-        faint one holds it least."""
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Means, values and position standard deviations (larger axis) of the components that
+        support no confirmed track: their weight, halved for every HALF_VALUE_LOOKS x weight (at
+        most 1) looks already spent on the cell under them, so that a component the filter does
+        not explain cannot hold the robot, and a faint one holds it least."""
         unfound = ~np.isin(mixture.labels, found)
         xy = mixture.means[unfound, :2]
         weights = mixture.weights[unfound]
+        covs = mixture.covs[unfound, :2, :2]
         inside = self._inside(xy)
-        xy, weights = xy[inside], weights[inside]
+        xy, weights, covs = xy[inside], weights[inside], covs[inside]
+        sd: FloatArray = np.sqrt(np.linalg.eigvalsh(covs)[:, -1]) if covs.size else np.zeros(0)
         looks = memory.looks[self._cell_of(xy)] if self.cells_xy.shape[0] else np.zeros(0)
         patience = HALF_VALUE_LOOKS * np.clip(weights, 0.05, 1.0)
         value: FloatArray = weights * 0.5 ** (np.maximum(looks - 1, 0) / patience)
-        return xy, value
+        return xy, value, sd
 
     def _into_area(self, xy: FloatArray) -> FloatArray:
         """The points, each outside the area replaced by the nearest cell centre (inside)."""
@@ -342,6 +371,31 @@ def best_order(robot_xy: FloatArray, goals_xy: FloatArray, values: FloatArray,
     score = (values[orders] * np.exp(-flown / horizon_m)).sum(axis=1)
     best: IntArray = orders[int(np.argmax(score))]
     return best
+
+
+def _lost(prior: Mixture, tracks: Tracks, mixture: Mixture) -> FloatArray:
+    """(m,) each initial component's weight that neither a confirmed track (a whole target each)
+    nor the unexplained weight of the components now near it (within LOST_SIGMAS of it, nearest
+    to it of all the initial components) accounts for."""
+    found = tracks.confirmed
+    unexplained = ~np.isin(mixture.labels, tracks.ids[found])
+    held = np.concatenate([np.ones(int(found.sum())), mixture.weights[unexplained]])
+    xy = np.vstack([tracks.means[found, :2], mixture.means[unexplained, :2]])
+    maha = _mahalanobis2(xy, prior)
+    lost = prior.weights.copy()
+    if xy.shape[0]:
+        nearest = np.argmin(maha, axis=1)
+        near = maha[np.arange(xy.shape[0]), nearest] <= LOST_SIGMAS**2
+        lost -= np.bincount(nearest[near], weights=held[near], minlength=prior.size)
+    out: FloatArray = np.maximum(lost, 0.0)
+    return out
+
+
+def _mahalanobis2(xy: FloatArray, mixture: Mixture) -> FloatArray:
+    """(k, m) the squared Mahalanobis distance of each point to each component's position."""
+    d = xy[:, None, :] - mixture.means[None, :, :2]
+    maha: FloatArray = np.einsum("kmi,mij,kmj->km", d, np.linalg.inv(mixture.covs[:, :2, :2]), d)
+    return maha
 
 
 def _found_ids(tracks: Tracks) -> IntArray:
