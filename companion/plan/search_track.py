@@ -145,8 +145,7 @@ class SearchTrack:
         """The memory before the first call from the initial belief (None: empty): nothing looked
         at, everything left to find."""
         n = self.cells_xy.shape[0]
-        prior = belief if belief is not None else Mixture(
-            np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros(0, dtype=np.int64))
+        prior = belief if belief is not None else Mixture.empty()
         share = self._shares_on_cells(prior)
         return SearchProgress(np.zeros(n, dtype=np.int64), np.zeros(n, dtype=bool),
                               np.full(n, -math.inf), -math.inf, math.inf, False,
