@@ -120,8 +120,7 @@ class SearchProgress:
     goal_xy: FloatArray | None = None  # the goal flown to now: the tour's first
     tour_xy: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))  # (m, 2) goals left
     tour_values: FloatArray = field(default_factory=lambda: np.zeros(0))  # their planned values
-    believed: float = 0.0  # targets the mixture expected at the first call (its sum of weights)
-    prior: Mixture | None = None  # the mixture at the first call
+    prior: Mixture = field(default_factory=Mixture.empty)  # the mixture at the first call
     prior_share: FloatArray = field(default_factory=lambda: np.zeros((0, 0)))  # (n, m) its
     # components' shares on each cell
 
@@ -149,7 +148,7 @@ class SearchTrack:
         share = self._shares_on_cells(prior)
         return SearchProgress(np.zeros(n, dtype=np.int64), np.zeros(n, dtype=bool),
                               np.full(n, -math.inf), -math.inf, math.inf, False,
-                              believed=prior.total_weight, prior=prior, prior_share=share)
+                              prior=prior, prior_share=share)
 
     def _shares_on_cells(self, mixture: Mixture) -> FloatArray:
         """(n, m) each component's share of its position mass on each cell (its density at the
@@ -213,10 +212,10 @@ class SearchTrack:
         n = self.cells_xy.shape[0]
         found = int(tracks.confirmed.sum())
         seen = float((memory.looks > 0).mean()) if n else 1.0
-        beyond = max(found - memory.believed, 0.0)  # found beyond what the first belief held
+        beyond = max(found - memory.prior.total_weight, 0.0)  # beyond what the first belief held
         total = max(self.params.unseen_targets, beyond / max(seen, MIN_SEEN_SHARE))
         shape = np.full(n, total / max(n, 1))
-        if memory.prior is not None and memory.prior.size:
+        if memory.prior.size:
             shape += memory.prior_share @ _lost(memory.prior, tracks, mixture)
         miss: FloatArray = shape * (1.0 - self.params.p_detect) ** memory.looks
         return miss
