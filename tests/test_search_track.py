@@ -147,6 +147,18 @@ def test_an_uncertain_track_is_revisited_and_a_sharp_one_is_not() -> None:
     assert waypoint is not None and np.allclose(waypoint, [100.0, 100.0])
 
 
+def test_with_every_cell_looked_at_it_looks_at_what_is_left_before_revisiting_tracks() -> None:
+    planner = make_search_track(WORLD, PARAMS)
+    looked = replace(planner.start(), looks=np.ones(planner.cells_xy.shape[0], dtype=np.int64))
+    # A clutter-born component far off holds 0.2 targets: the search cannot end until a look
+    # wears it down, so the near track that wants a revisit must wait (else it never ends).
+    far = make_mixture([0.2], np.array([[140.0, 140.0]]), np.array([np.eye(2)]))
+    vague = _one_track(1, [20.0, 20.0], var_m2=150.0, seen_t_s=0.0)
+    waypoint, progress = planner.next_waypoint(np.zeros(2), far, vague, WORLD, looked, 0.0)
+    assert not planner.finished(progress)
+    assert waypoint is not None and np.allclose(waypoint, [140.0, 140.0])
+
+
 def test_best_order_takes_the_near_goal_first_when_both_are_worth_the_same() -> None:
     goals = np.array([[100.0, 0.0], [10.0, 0.0]])
     assert best_order(np.zeros(2), goals, np.array([1.0, 1.0]), 150.0).tolist() == [1, 0]

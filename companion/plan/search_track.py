@@ -15,8 +15,9 @@ sure view, or stays in it for another `look_s` seconds). The goals are
   what was seen and resumes where the robot is), valued by the unseen mass that the next few
   sweep points would look at;
 - track: each confirmed track, valued (while the search lasts, at TRACK_WEIGHT_SEARCHING: re-finding
-  a counted target is worth less than finding a new one) by the probability that its target has
-  moved farther than
+  a counted target is worth less than finding a new one; at nothing once every cell has been
+  looked at and only unexplained components keep the search going, so that the robot looks at
+  them and the search can end) by the probability that its target has moved farther than
   half the view from the track's mean (from its honest covariance, grown with the time unseen),
   times the probability that a look at its mean still sees it, times its existence;
 
@@ -182,7 +183,10 @@ class SearchTrack:
         sweep_xy, sweep_value = (np.zeros((0, 2)), np.zeros(0)) if searched else (
             self._sweep_goals(robot_xy, memory, unseen))
         track_xy, track_value = self._track_goals(tracks, t_s)
-        track_value = track_value * (TRACK_WEIGHT_SEARCHING if not searched else 1.0)
+        # Searching with every cell looked at: only the unexplained components are left to look
+        # at, and the search ends once they are; revisiting tracks would hold it off for ever.
+        weight = 1.0 if searched else TRACK_WEIGHT_SEARCHING if sweep_value.size else 0.0
+        track_value = track_value * weight
         memory = self._choose(robot_xy, np.vstack([comp_xy, track_xy]),
                               np.concatenate([comp_value, track_value]), sweep_xy, sweep_value,
                               memory)
