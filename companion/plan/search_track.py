@@ -62,6 +62,7 @@ INTERRUPT_RATIO = 3.0  # tour being flown holds, makes the planner plan a new to
 MIN_SEEN_SHARE = 0.25  # the density of found targets is trusted once this much was seen
 HALF_VALUE_LOOKS = 12.0  # a minute in view at look_s = 5 s halves a whole target's value
 LOST_SIGMAS = 3.0  # a track or component this many sigmas from an initial component holds its mass
+LOST_SPREAD = 2.0  # a target its initial component lost is looked for this many times as wide
 MAX_CELLS = 2500  # the grid is made coarser than view/2 if the area would need more cells
 
 
@@ -146,7 +147,7 @@ class SearchTrack:
         at, everything left to find."""
         n = self.cells_xy.shape[0]
         prior = belief if belief is not None else Mixture.empty()
-        share = self._shares_on_cells(prior)
+        share = self._shares_on_cells(replace(prior, covs=prior.covs * LOST_SPREAD**2))
         return SearchProgress(np.zeros(n, dtype=np.int64), np.zeros(n, dtype=bool),
                               np.full(n, -math.inf), -math.inf, math.inf, False,
                               prior=prior, prior_share=share)
@@ -171,7 +172,7 @@ class SearchTrack:
         memory = self._look(robot_xy, memory, t_s)
         found = _found_ids(tracks)
         comp_xy, comp_value, comp_sd = self._component_goals(mixture, found, memory)
-        unseen = self._unseen_mass(memory, tracks, mixture)
+        unseen, lost_xy, lost_value = self._unseen_mass(memory, tracks, mixture)
         left = float(unseen.sum() + comp_value.sum())
         # A component whose 2-sigma disk the sensor surely sees is being looked at: no need to fly
         # to it; one wider is flown to until it is that well in view (or its mean reached).
@@ -187,9 +188,9 @@ class SearchTrack:
         # at, and the search ends once they are; revisiting tracks would hold it off for ever.
         weight = 1.0 if searched else TRACK_WEIGHT_SEARCHING if sweep_value.size else 0.0
         track_value = track_value * weight
-        memory = self._choose(robot_xy, np.vstack([comp_xy, track_xy]),
-                              np.concatenate([comp_value, track_value]), sweep_xy, sweep_value,
-                              memory)
+        memory = self._choose(robot_xy, np.vstack([comp_xy, lost_xy, track_xy]),
+                              np.concatenate([comp_value, lost_value, track_value]), sweep_xy,
+                              sweep_value, memory)
         waypoint = memory.goal_xy
         return (None if waypoint is None else world.clip(waypoint)), memory
 
@@ -208,21 +209,27 @@ class SearchTrack:
         return replace(memory, looks=looks, in_view=in_view, looked_t_s=looked_t_s, t_s=t_s)
 
     def _unseen_mass(self, memory: SearchProgress, tracks: Tracks,
-                     mixture: Mixture) -> FloatArray:
+                     mixture: Mixture) -> tuple[FloatArray, FloatArray, FloatArray]:
         """(n,) expected targets on each cell that no look has found: unseen_targets spread evenly
         (or more where the targets found so far on the ground seen say the area holds more), and
         each initial component's mass that no confirmed track or component near it holds any more,
-        spread as that component was."""
+        spread as that component was; with the goals of that lost mass: for each initial component
+        that lost some, the centroid of its part no look has found yet, worth that part."""
         n = self.cells_xy.shape[0]
         found = int(tracks.confirmed.sum())
         seen = float((memory.looks > 0).mean()) if n else 1.0
         beyond = max(found - memory.prior.total_weight, 0.0)  # beyond what the first belief held
         total = max(self.params.unseen_targets, beyond / max(seen, MIN_SEEN_SHARE))
-        shape = np.full(n, total / max(n, 1))
-        if memory.prior.size:
-            shape += memory.prior_share @ _lost(memory.prior, tracks, mixture)
-        miss: FloatArray = shape * (1.0 - self.params.p_detect) ** memory.looks
-        return miss
+        missed = (1.0 - self.params.p_detect) ** memory.looks
+        miss: FloatArray = np.full(n, total / max(n, 1)) * missed
+        if not memory.prior.size:
+            return miss, np.zeros((0, 2)), np.zeros(0)
+        lost_share = memory.prior_share * missed[:, None] * _lost(memory.prior, tracks, mixture)
+        miss += lost_share.sum(axis=1)
+        lost_value = lost_share.sum(axis=0)
+        some = lost_value > 1e-6
+        lost_xy = (lost_share[:, some].T @ self.cells_xy) / lost_value[some, None]
+        return miss, lost_xy, lost_value[some]
 
     def _cell_of(self, xy: FloatArray) -> IntArray:
         """(m,) the cell each point lies on, or the nearest cell for a point on none."""
