@@ -25,6 +25,7 @@ from companion.sat.linalg import spd_2x2_faults
 from companion.sat.mixture import Mixture
 from companion.sat.predict import LinearModel, apply_gp, predict_linear, transition
 from companion.sat.reduce import merge_kernel, prune_kernel
+from companion.sat.track_kernels import fresh_windows
 from companion.sat.tracks import Evidence, TrackParams, Tracks, maintain
 from companion.sat.update import (
     NO_FIRST,
@@ -213,8 +214,9 @@ def _predict(state: SatState, dt_s: float, params: SatParams) -> Mixture:
 
 def _refit_fresh(tracks: Tracks, t_s: float, gp: GpPredictor) -> Tracks:
     """Only confirmed tracks are predicted by their GP: refit the windows that just changed."""
-    fresh = tracks.confirmed & (tracks.win_count > 0) & (tracks.win_t_s[:, -1] == t_s)
-    return tracks.refit_gp(fresh.nonzero()[0], gp)
+    return tracks.refit_gp(
+        fresh_windows(tracks.confirmed, tracks.win_count, tracks.win_t_s, t_s), gp
+    )
 
 
 def step(

@@ -265,3 +265,14 @@ def survivors(
         if supported_by[row] >= 0:
             labels[supported_by[row]] = track_ids[row]
     return alive, labels, n_alive, n_new
+
+
+@njit(cache=True, nogil=True)
+def fresh_windows(
+    confirmed: BoolArray, win_count: IntArray, win_t_s: FloatArray, t_s: float
+) -> IntArray:
+    """The confirmed rows whose GP window gained a detection at t_s (its newest entry)."""
+    fresh = np.zeros(confirmed.shape[0], dtype=np.bool_)
+    for row in range(confirmed.shape[0]):
+        fresh[row] = confirmed[row] and win_count[row] > 0 and win_t_s[row, -1] == t_s
+    return np.flatnonzero(fresh)
