@@ -141,7 +141,10 @@ def _float_array(value: object, what: str) -> FloatArray:
 def _checked_time(scan: Scan, state: SatState) -> None:
     """InputError unless the scan's time is a finite number in [state time, + _MAX_GAP_S]."""
     raw: object = scan.t_s  # typed float, but callers may hand in anything
-    t = math.nan if isinstance(raw, bool) or not isinstance(raw, numbers.Real) else float(raw)
+    if type(raw) is float:  # the common case, without the slower abstract-class test
+        t = raw
+    else:
+        t = math.nan if isinstance(raw, bool) or not isinstance(raw, numbers.Real) else float(raw)
     if not (math.isfinite(t) and state.t_s <= t <= state.t_s + _MAX_GAP_S):
         raise InputError(
             f"scan time {raw!r} s: must be finite, >= {state.t_s} s and at most "
@@ -164,7 +167,10 @@ def _checked_measurements(scan: Scan) -> tuple[FloatArray, int]:
         return np.zeros((0, 2)), 0
     if z.ndim != 2 or z.shape[1] != 2:
         raise InputError(f"scan measurements: expected shape (m, 2), got {z.shape}")
-    finite = np.all(np.isfinite(z), axis=1)
+    finite_entries = np.isfinite(z)
+    if finite_entries.all():
+        return z, 0
+    finite = finite_entries.all(axis=1)
     return z[finite], int(z.shape[0] - finite.sum())
 
 

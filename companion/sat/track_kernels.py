@@ -276,3 +276,17 @@ def fresh_windows(
     for row in range(confirmed.shape[0]):
         fresh[row] = confirmed[row] and win_count[row] > 0 and win_t_s[row, -1] == t_s
     return np.flatnonzero(fresh)
+
+
+@njit(cache=True, nogil=True)
+def write_rows(
+    buf_ids: IntArray, buf_t_s: FloatArray, buf_means: FloatArray, buf_covs: FloatArray,
+    start: int, ids: IntArray, t_s: float, means: FloatArray, covs: FloatArray, rows: IntArray,
+) -> None:
+    """Write the given rows of (ids, means, covs), at time t_s, into the log's buffers from row
+    start on, in order."""
+    for k in range(rows.shape[0]):
+        buf_ids[start + k] = ids[rows[k]]
+        buf_t_s[start + k] = t_s
+        buf_means[start + k] = means[rows[k]]
+        buf_covs[start + k] = covs[rows[k]]

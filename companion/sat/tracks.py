@@ -115,9 +115,14 @@ class TrackLog:
         """A log with no rows."""
         return TrackLog(_LogBuffer(dim, 1024), 0)
 
-    def append(self, ids: IntArray, t_s: float, means: FloatArray, covs: FloatArray) -> TrackLog:
-        """A view with the rows of this one followed by the given rows."""
-        k = ids.shape[0]
+    def append(
+        self, ids: IntArray, t_s: float, means: FloatArray, covs: FloatArray,
+        rows: IntArray | None = None,
+    ) -> TrackLog:
+        """A view with the rows of this one followed by the given rows (only `rows` of the given
+        arrays, in that order, when given)."""
+        picked = np.arange(ids.shape[0]) if rows is None else rows
+        k = picked.shape[0]
         if k == 0:
             return self
         buf = self.buffer
@@ -127,10 +132,8 @@ class TrackLog:
             for name in ("ids", "t_s", "means", "covs"):
                 getattr(grown, name)[: self.length] = getattr(buf, name)[: self.length]
             buf = grown
-        buf.ids[self.length : end] = ids
-        buf.t_s[self.length : end] = t_s
-        buf.means[self.length : end] = means
-        buf.covs[self.length : end] = covs
+        kernels.write_rows(buf.ids, buf.t_s, buf.means, buf.covs, self.length, ids, t_s, means,
+                           covs, picked)
         buf.used = end
         return TrackLog(buf, end)
 
@@ -443,7 +446,7 @@ def _support(
         gp_mu=tracks.gp_mu,
         gp_beta=tracks.gp_beta,
         gp_ky_inv=tracks.gp_ky_inv,
-        log=tracks.log.append(tracks.ids[rows], t_s, means[rows], covs[rows]),
+        log=tracks.log.append(tracks.ids, t_s, means, covs, rows),
         next_id=tracks.next_id,
     )
 
