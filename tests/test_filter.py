@@ -8,10 +8,23 @@ import numpy as np
 import pytest
 
 from companion.errors import InputError
-from companion.sat.filter import SatParams, Scan, initial_state, step
+from companion.sat.birth import BirthWeight, birth, birth_weights
+from companion.sat.extract import extract
+from companion.sat.filter import SatParams, Scan, _update_kernel, initial_state, step
 from companion.sat.fov import Disk
 from companion.sat.gp import GpPredictor
 from companion.sat.mixture import Mixture, make_mixture
+from companion.sat.reduce import merge, prune
+from companion.sat.update import (
+    NO_FIRST,
+    NO_SECOND,
+    PushMode,
+    PushRule,
+    detection,
+    no_detection,
+    push_code,
+    visibility,
+)
 from companion.sim.run import simulate
 from companion.sim.scenario import parse_scenario
 
@@ -102,3 +115,51 @@ def test_bad_scans_raise_input_errors(scan: Scan, message: str) -> None:
     state = initial_state(Mixture.empty(), 0.0, params)
     with pytest.raises(InputError, match=message):
         step(state, scan, params, GpPredictor(params.gp))
+
+
+@pytest.mark.parametrize("mode", [PushMode.MOMENT, PushMode.PAPER, None])
+@pytest.mark.parametrize("dim", [2, 4])
+def test_the_compiled_update_is_the_public_pieces_composed(mode: PushMode | None, dim: int) -> None:
+    """filter._update_kernel gives bit for bit what the public update, birth, prune, merge and
+    extract give one after the other (the LMB calls those), with measurements, claims and the
+    push rule in play."""
+    rng = np.random.default_rng(7)
+    n, area = 12, Disk(np.array([5.0, 5.0]), 8.0)
+    means = np.zeros((n, dim))
+    means[:, :2] = rng.uniform(-5.0, 15.0, (n, 2))
+    covs = np.tile(np.eye(dim), (n, 1, 1)) * rng.uniform(0.2, 9.0, (n, 1, 1))
+    pred = make_mixture(rng.uniform(0.01, 1.5, n), means, covs, np.arange(n) - 3)
+    z = np.vstack([means[:3, :2] + 0.3, [[9.0, 2.0]]])
+    r_cov = np.array([[0.5, 0.1], [0.1, 0.4]])
+    push = None if mode is None else PushRule(0.05, 0.95, mode)
+    clutter, newborn = 0.1 / area.area_m2, 1.0 / area.area_m2
+    vis = visibility(pred, area, 0.98, mode is PushMode.MOMENT)
+    found = detection(pred, vis.p_d, z, r_cov, clutter, newborn)
+    claimed = found.children.weights.reshape(z.shape[0], n).sum(axis=0) > 0.5 * pred.weights
+    w_new = birth_weights(BirthWeight.ADAPTIVE, 1.0, found.explained, clutter, newborn)
+    posterior = Mixture.concat([
+        no_detection(pred, vis, np.array([4.0, 6.0]), push, claimed), found.children,
+        birth(z, w_new, r_cov, 1.0, dim),
+    ])
+    detected = np.arange(posterior.size) >= n
+    pruned, kept = prune(posterior, 1e-3)
+    merged = merge(pruned, 10.0, 100, observed=detected[kept], resolution=r_cov)
+    from_detection = np.bincount(merged.group_of[merged.group_of >= 0],
+                                 weights=(pruned.weights * detected[kept])[merged.group_of >= 0],
+                                 minlength=merged.mixture.size)
+
+    out = _update_kernel(
+        pred.weights, pred.means, pred.covs, pred.labels, vis.p_d, 0.98,
+        NO_FIRST if vis.first is None else vis.first,
+        NO_SECOND if vis.second is None else vis.second, claimed, np.array([4.0, 6.0]),
+        push_code(push), 0.05, 0.95, found.children.weights, found.children.means,
+        found.children.covs, found.children.labels, z, w_new, r_cov, 1.0, 1e-3, 10.0, 100, 0.5,
+    )
+    reduced = merged.mixture
+    for got, want in zip(out[:4], (reduced.weights, reduced.means, reduced.covs, reduced.labels),
+                         strict=True):
+        assert np.array_equal(got, want)
+    assert np.array_equal(out[4], from_detection > 0.5 * reduced.weights)
+    assert np.array_equal(out[5], np.flatnonzero(reduced.weights > 0.5))
+    assert out[6] == extract(reduced, 0.5).size
+    assert merged.mixture.size < posterior.size  # the case merges, as well as prunes

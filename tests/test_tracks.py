@@ -139,6 +139,18 @@ def test_log_views_are_immutable() -> None:
     assert c.history(1)[0].tolist() == [0.0, 2.0]
 
 
+def test_appending_some_rows_logs_what_appending_those_rows_alone_logs() -> None:
+    ids, means = np.array([4, 7, 9]), np.arange(6.0).reshape(3, 2)
+    covs = np.arange(12.0).reshape(3, 2, 2)
+    rows = np.array([2, 0])
+    some = TrackLog.empty(2).append(ids, 3.0, means, covs, rows)
+    alone = TrackLog.empty(2).append(ids[rows], 3.0, means[rows], covs[rows])
+    for track_id in (4, 7, 9):
+        for got, want in zip(some.history(track_id), alone.history(track_id), strict=True):
+            assert np.array_equal(got, want)
+    assert some.length == 2 and TrackLog.empty(2).append(ids, 3.0, means, covs, NONE).length == 0
+
+
 def _confirmed_walker() -> tuple[Tracks, Mixture]:
     """One confirmed track of a walker at the origin, seen at t = 0, 1, 2 (no frame evidence)."""
     tracks = Tracks.empty(2, WALKERS.window)

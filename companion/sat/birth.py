@@ -5,9 +5,10 @@ from __future__ import annotations
 from enum import Enum
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
-from companion.sat.mixture import NO_LABEL, Mixture, lift_positions
+from companion.sat.mixture import NO_LABEL, Mixture
 
 FloatArray = NDArray[np.float64]
 
@@ -42,5 +43,37 @@ def birth(
     state_dim: int,
 ) -> Mixture:
     """Components with mean z, covariance R (and a zero-mean velocity prior in a 4-D state)."""
-    means, covs = lift_positions(measurements_xy, r_cov, state_dim, velocity_var_m2_s2)
-    return Mixture(weights.copy(), means, covs, np.full(len(means), NO_LABEL, dtype=np.int64))
+    m = measurements_xy.shape[0]
+    born = Mixture(
+        np.empty(m), np.empty((m, state_dim)), np.empty((m, state_dim, state_dim)),
+        np.empty(m, dtype=np.int64),
+    )
+    born_kernel(measurements_xy, weights, r_cov, velocity_var_m2_s2,
+                born.weights, born.means, born.covs, born.labels)
+    return born
+
+
+@njit(cache=True, nogil=True)
+def born_kernel(  # pragma: no cover - compiled; tested through birth
+    z: FloatArray,
+    weights: FloatArray,
+    r_cov: FloatArray,
+    velocity_var_m2_s2: float,
+    w_out: FloatArray,
+    m_out: FloatArray,
+    p_out: FloatArray,
+    labels_out: NDArray[np.int64],
+) -> None:
+    """Fill one new component per measurement: weight, mean z (zero velocity), covariance R (and
+    velocity_var_m2_s2 on the velocity diagonal in a 4-D state), no label."""
+    d = m_out.shape[1]
+    for k in range(z.shape[0]):
+        w_out[k] = weights[k]
+        m_out[k] = 0.0
+        m_out[k, 0], m_out[k, 1] = z[k, 0], z[k, 1]
+        p_out[k] = 0.0
+        p_out[k, 0, 0], p_out[k, 0, 1] = r_cov[0, 0], r_cov[0, 1]
+        p_out[k, 1, 0], p_out[k, 1, 1] = r_cov[1, 0], r_cov[1, 1]
+        for a in range(2, d):
+            p_out[k, a, a] = velocity_var_m2_s2
+        labels_out[k] = NO_LABEL

@@ -17,7 +17,7 @@ IntArray = NDArray[np.int64]
 def extract(mix: Mixture, weight_threshold: float) -> NDArray[np.int64]:
     """Indices of the estimated targets: each component with w > threshold, round(w) times."""
     weights = mix.weights
-    out = np.empty(_count_estimates(weights, weight_threshold), dtype=np.int64)
+    out = np.empty(count_estimates(weights, weight_threshold), dtype=np.int64)
     _fill_estimates(weights, weight_threshold, out)
     return out
 
@@ -29,7 +29,7 @@ def _copies(weight: float) -> int:  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _count_estimates(weights: FloatArray, threshold: float) -> int:  # pragma: no cover
+def count_estimates(weights: FloatArray, threshold: float) -> int:  # pragma: no cover
     """The number of estimates: the sum of round(w) over the weights above threshold."""
     total = 0
     for w in weights:

@@ -12,22 +12,35 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from companion.errors import InputError
 from companion.sat import lmb
-from companion.sat.birth import BirthWeight, birth, birth_weights
-from companion.sat.extract import extract
+from companion.sat.birth import BirthWeight, birth_weights, born_kernel
+from companion.sat.extract import count_estimates
 from companion.sat.fov import ConvexPolygon, Disk, Region
 from companion.sat.gp import GpParams, GpPredictor
 from companion.sat.linalg import spd_2x2_faults
 from companion.sat.mixture import Mixture
 from companion.sat.predict import LinearModel, apply_gp, predict_linear, transition
-from companion.sat.reduce import merge, prune
+from companion.sat.reduce import merge_kernel, prune_kernel
+from companion.sat.track_kernels import fresh_windows
 from companion.sat.tracks import Evidence, TrackParams, Tracks, maintain
-from companion.sat.update import PushMode, PushRule, detection, no_detection, visibility
+from companion.sat.update import (
+    NO_FIRST,
+    NO_SECOND,
+    PushMode,
+    PushRule,
+    detection,
+    missed_kernel,
+    push_code,
+    visibility,
+)
 
 FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+BoolArray = NDArray[np.bool_]
 
 
 class FilterKind(StrEnum):
@@ -128,7 +141,10 @@ def _float_array(value: object, what: str) -> FloatArray:
 def _checked_time(scan: Scan, state: SatState) -> None:
     """InputError unless the scan's time is a finite number in [state time, + _MAX_GAP_S]."""
     raw: object = scan.t_s  # typed float, but callers may hand in anything
-    t = math.nan if isinstance(raw, bool) or not isinstance(raw, numbers.Real) else float(raw)
+    if type(raw) is float:  # the common case, without the slower abstract-class test
+        t = raw
+    else:
+        t = math.nan if isinstance(raw, bool) or not isinstance(raw, numbers.Real) else float(raw)
     if not (math.isfinite(t) and state.t_s <= t <= state.t_s + _MAX_GAP_S):
         raise InputError(
             f"scan time {raw!r} s: must be finite, >= {state.t_s} s and at most "
@@ -151,7 +167,10 @@ def _checked_measurements(scan: Scan) -> tuple[FloatArray, int]:
         return np.zeros((0, 2)), 0
     if z.ndim != 2 or z.shape[1] != 2:
         raise InputError(f"scan measurements: expected shape (m, 2), got {z.shape}")
-    finite = np.all(np.isfinite(z), axis=1)
+    finite_entries = np.isfinite(z)
+    if finite_entries.all():
+        return z, 0
+    finite = finite_entries.all(axis=1)
     return z[finite], int(z.shape[0] - finite.sum())
 
 
@@ -201,8 +220,9 @@ def _predict(state: SatState, dt_s: float, params: SatParams) -> Mixture:
 
 def _refit_fresh(tracks: Tracks, t_s: float, gp: GpPredictor) -> Tracks:
     """Only confirmed tracks are predicted by their GP: refit the windows that just changed."""
-    fresh = tracks.confirmed & (tracks.win_count > 0) & (tracks.win_t_s[:, -1] == t_s)
-    return tracks.refit_gp(fresh.nonzero()[0], gp)
+    return tracks.refit_gp(
+        fresh_windows(tracks.confirmed, tracks.win_count, tracks.win_t_s, t_s), gp
+    )
 
 
 def step(
@@ -240,12 +260,13 @@ def step(
         )
         tracks = _refit_fresh(tracks, scan.t_s, gp)
         return SatState(scan.t_s, mixture, tracks), StepReport(estimates, dropped, region is None)
-    dim = predicted.dim
+    n = predicted.size
     if region is None:
-        posterior = predicted
-        detected = np.zeros(predicted.size, dtype=bool)
-        explained = np.zeros(0)
-        clutter = newborn = 0.0
+        reduced, detected, est_rows, n_estimates = _reduced(*_reduce_kernel(
+            predicted.weights, predicted.means, predicted.covs, predicted.labels,
+            np.zeros(n, dtype=bool), params.prune_weight, params.merge_distance_sq,
+            params.max_components, r_cov, params.extract_weight,
+        ))
     else:
         area = region.area_m2
         clutter = params.clutter_per_scan / area  # kappa(z): false positives uniform in the FOV
@@ -254,44 +275,123 @@ def step(
         vis = visibility(predicted, region, params.p_detect, moments)
         found = detection(predicted, vis.p_d, z, r_cov, clutter, newborn)
         # A component that a measurement claims is in view: its missed part is not pushed out.
-        from_detections = found.children.weights.reshape(z.shape[0], predicted.size).sum(axis=0)
-        claimed = from_detections > 0.5 * predicted.weights
-        missed = no_detection(predicted, vis, sensor_xy, params.push, claimed)
-        posterior = Mixture.concat([missed, found.children])
-        detected = np.arange(posterior.size) >= missed.size
-        explained = found.explained
-
-    if z.shape[0]:
+        if z.shape[0]:
+            from_detections = found.children.weights.reshape(z.shape[0], n).sum(axis=0)
+            claimed = from_detections > 0.5 * predicted.weights
+        else:
+            claimed = np.zeros(n, dtype=bool)
         # Measurement-driven birth joins the update's components before reduction, so that a
         # newborn component on top of a known target merges into it and keeps its track's label.
-        w_new = birth_weights(params.birth, params.birth_weight, explained, clutter, newborn)
-        born = birth(z, w_new, r_cov, params.velocity_var_m2_s2, dim)
-        posterior = Mixture.concat([posterior, born])
-        detected = np.concatenate([detected, np.ones(born.size, dtype=bool)])
-
-    pruned, kept = prune(posterior, params.prune_weight)
-    merged = merge(
-        pruned, params.merge_distance_sq, params.max_components, observed=detected[kept],
-        resolution=r_cov,
-    )
-    reduced = merged.mixture
-    # A merged component owes its weight to a detection when most of it came from detections.
-    in_group = merged.group_of >= 0
-    from_detection = np.bincount(
-        merged.group_of[in_group],
-        weights=(pruned.weights * detected[kept])[in_group],
-        minlength=reduced.size,
-    )
-    detected_reduced = from_detection > 0.5 * reduced.weights
-
-    est_index = extract(reduced, params.extract_weight)
-    est_rows = (reduced.weights > params.extract_weight).nonzero()[0]
+        w_new = birth_weights(params.birth, params.birth_weight, found.explained, clutter, newborn)
+        push = params.push
+        children = found.children
+        reduced, detected, est_rows, n_estimates = _reduced(*_update_kernel(
+            predicted.weights, predicted.means, predicted.covs, predicted.labels, vis.p_d,
+            params.p_detect, NO_FIRST if vis.first is None else vis.first,
+            NO_SECOND if vis.second is None else vis.second, claimed, sensor_xy,
+            push_code(push), 0.0 if push is None else push.lower,
+            0.0 if push is None else push.upper, children.weights, children.means,
+            children.covs, children.labels, z, w_new, r_cov, params.velocity_var_m2_s2,
+            params.prune_weight, params.merge_distance_sq, params.max_components,
+            params.extract_weight,
+        ))
     evidence = None if region is None else Evidence(
-        region, params.p_detect, clutter, r_cov, params.birth_weight / region.area_m2
+        region, params.p_detect, clutter, r_cov, params.birth_weight / area
     )
     tracks, labelled = maintain(
-        state.tracks, reduced, est_rows, detected_reduced, scan.t_s, params.tracks, evidence
+        state.tracks, reduced, est_rows, detected, scan.t_s, params.tracks, evidence
     )
     tracks = _refit_fresh(tracks, scan.t_s, gp)
-    report = StepReport(int(est_index.size), dropped, region is None)
+    report = StepReport(n_estimates, dropped, region is None)
     return SatState(scan.t_s, labelled, tracks), report
+
+
+def _reduced(
+    weights: FloatArray, means: FloatArray, covs: FloatArray, labels: IntArray,
+    detected: BoolArray, est_rows: IntArray, n_estimates: int,
+) -> tuple[Mixture, BoolArray, IntArray, int]:
+    """_reduce_kernel's result as (mixture, detected, est_rows, number of estimates)."""
+    return Mixture(weights, means, covs, labels), detected, est_rows, n_estimates
+
+
+@njit(cache=True, nogil=True)
+def _update_kernel(  # pragma: no cover - compiled; tested through step
+    weights: FloatArray,
+    means: FloatArray,
+    covs: FloatArray,
+    labels: IntArray,
+    p_d: FloatArray,
+    p_detect: float,
+    first: FloatArray,
+    second: FloatArray,
+    claimed: BoolArray,
+    sensor_xy: FloatArray,
+    push: int,
+    lower: float,
+    upper: float,
+    child_w: FloatArray,
+    child_m: FloatArray,
+    child_p: FloatArray,
+    child_labels: IntArray,
+    z: FloatArray,
+    w_new: FloatArray,
+    r_cov: FloatArray,
+    velocity_var_m2_s2: float,
+    prune_weight: float,
+    merge_distance_sq: float,
+    max_components: int,
+    extract_weight: float,
+) -> tuple[FloatArray, FloatArray, FloatArray, IntArray, BoolArray, IntArray, int]:
+    """The update of a step with a frame, then _reduce_kernel. The posterior is, in order: the
+    no-detection components (update.missed_kernel, the push rule sparing the claimed ones), the
+    detection children (update.detection) and one newborn component of weight w_new per
+    measurement (birth.born_kernel); the children and the newborn come from detections."""
+    n, d = means.shape
+    n_children, m = child_w.shape[0], z.shape[0]
+    rows = n + n_children + m
+    w_out, m_out = np.empty(rows), np.empty((rows, d))
+    p_out, labels_out = np.empty((rows, d, d)), np.empty(rows, dtype=np.int64)
+    missed_kernel(weights, means, covs, p_d, p_detect, first, second, claimed, sensor_xy, push,
+                  lower, upper, w_out[:n], m_out[:n], p_out[:n])
+    labels_out[:n] = labels
+    end = n + n_children
+    w_out[n:end], m_out[n:end], p_out[n:end] = child_w, child_m, child_p
+    labels_out[n:end] = child_labels
+    born_kernel(z, w_new, r_cov, velocity_var_m2_s2, w_out[end:], m_out[end:], p_out[end:],
+                labels_out[end:])
+    detected = np.arange(rows) >= n
+    return _reduce_kernel(w_out, m_out, p_out, labels_out, detected, prune_weight,
+                          merge_distance_sq, max_components, r_cov, extract_weight)
+
+
+@njit(cache=True, nogil=True)
+def _reduce_kernel(  # pragma: no cover - compiled; tested through step
+    weights: FloatArray,
+    means: FloatArray,
+    covs: FloatArray,
+    labels: IntArray,
+    detected: BoolArray,
+    prune_weight: float,
+    merge_distance_sq: float,
+    max_components: int,
+    r_cov: FloatArray,
+    extract_weight: float,
+) -> tuple[FloatArray, FloatArray, FloatArray, IntArray, BoolArray, IntArray, int]:
+    """Prune and merge a posterior (reduce.prune, reduce.merge with R as the resolution), then
+    extract: the reduced (weights, means, covs, labels), whether each reduced component owes
+    most of its weight to detections, the rows above extract_weight and the number of
+    estimates (extract.extract)."""
+    weights, means, covs, labels, keep, _ = prune_kernel(
+        weights, means, covs, labels, prune_weight
+    )
+    observed = detected[keep]
+    w_out, m_out, p_out, labels_out, group_of = merge_kernel(
+        weights, means, covs, labels, observed, True, merge_distance_sq, True, r_cov, True,
+        max_components,
+    )
+    from_detection = np.zeros(w_out.shape[0])
+    for i in range(group_of.shape[0]):
+        if group_of[i] >= 0:
+            from_detection[group_of[i]] += weights[i] * observed[i]
+    return (w_out, m_out, p_out, labels_out, from_detection > 0.5 * w_out,
+            np.flatnonzero(w_out > extract_weight), count_estimates(w_out, extract_weight))

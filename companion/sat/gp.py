@@ -367,6 +367,43 @@ def _centred_weights(  # pragma: no cover - compiled; tested through GpPredictor
                 beta[i, w, c] = acc
 
 
+@njit(cache=True, nogil=True)
+def _half_sq_lags(  # pragma: no cover - compiled; tested through GpPredictor.fit
+    rel_q: FloatArray, lam: float
+) -> FloatArray:
+    """-0.5 ((t_i - t_j) / lambda)^2 for every pair of a window's times: the exponents of
+    Eq. gp_kernel (the exponential is numpy's, as everywhere in this module's numpy code)."""
+    n = rel_q.shape[0]
+    out = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            diff = (rel_q[i] - rel_q[j]) / lam
+            out[i, j] = -0.5 * diff * diff
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _scale_add_diagonal(  # pragma: no cover - compiled; tested through GpPredictor.fit
+    ky: FloatArray, sf2: float, sn2: float
+) -> None:
+    """ky <- sf2 ky + sn2 I in place: K(K, K) + sigma_n^2 I from the exponentials (Eq.
+    gp_kernel)."""
+    n = ky.shape[0]
+    for i in range(n):
+        for j in range(n):
+            ky[i, j] = sf2 * ky[i, j]
+        ky[i, i] += sn2
+
+
+@njit(cache=True, nogil=True)
+def _symmetrise(a: FloatArray) -> None:  # pragma: no cover - compiled; tested through fit
+    """a <- (a + a^T) / 2 in place: the inverse's round-off asymmetry removed."""
+    n = a.shape[0]
+    for i in range(n):
+        for j in range(i + 1, n):
+            a[i, j] = a[j, i] = 0.5 * (a[i, j] + a[j, i])
+
+
 class GpPredictor:
     """Fits windows for prediction, memoising Ky^-1 by the window's internal timing.
 
@@ -399,7 +436,7 @@ class GpPredictor:
         check=False skips the input checks, for windows the tracker built itself.
         """
         if not check:
-            return self._fit(*(np.asarray(a) for a in (t_s, y, counts)))
+            return self._fit(np.asarray(t_s), np.asarray(y), np.asarray(counts))
         t_arr = np.asarray(t_s, dtype=np.float64)
         y_arr = np.asarray(y, dtype=np.float64)
         c_arr = np.asarray(counts)
@@ -468,9 +505,8 @@ class GpPredictor:
             self._cache.move_to_end(key)
             return hit
         params = self._params
-        diff = (rel_q[:, None] - rel_q[None, :]) / params.lengthscale_s
-        ky = params.sigma_f_m**2 * np.exp(-0.5 * diff * diff)  # Eq. gp_kernel: K(K, K)
-        ky.flat[:: ky.shape[0] + 1] += params.sigma_n_m**2  # the diagonal: + sigma_n^2 I
+        ky = np.exp(_half_sq_lags(rel_q, params.lengthscale_s))
+        _scale_add_diagonal(ky, params.sigma_f_m**2, params.sigma_n_m**2)  # Eq. gp_kernel
         try:
             inv = np.asarray(np.linalg.inv(ky), dtype=np.float64)
         except np.linalg.LinAlgError as exc:
@@ -478,7 +514,7 @@ class GpPredictor:
                 "GP covariance K + sigma_n^2 I is numerically singular: sigma_n is too small "
                 "relative to sigma_f for these times"
             ) from exc
-        inv = 0.5 * (inv + inv.T)
+        _symmetrise(inv)
         inv.setflags(write=False)
         if self._cache_size > 0:
             self._cache[key] = inv

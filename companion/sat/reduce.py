@@ -16,18 +16,30 @@ IntArray = NDArray[np.int64]
 
 def prune(mix: Mixture, weight_threshold: float) -> tuple[Mixture, NDArray[np.bool_]]:
     """Keep the components with w > T (Vo & Ma Table 2); also returns the kept mask."""
-    keep = np.empty(mix.size, dtype=np.bool_)
-    n_kept = _keep_heavy(mix.weights, weight_threshold, keep)
+    weights, means, covs, labels, keep, n_kept = prune_kernel(
+        mix.weights, mix.means, mix.covs, mix.labels, weight_threshold
+    )
     if n_kept == mix.size:  # nothing to prune: the mixture stands as it is
         return mix, keep
-    d = mix.dim
-    kept = Mixture(
-        np.empty(n_kept), np.empty((n_kept, d)), np.empty((n_kept, d, d)),
-        np.empty(n_kept, dtype=np.int64),
-    )
-    _compress(keep, mix.weights, mix.means, mix.covs, mix.labels,
-              kept.weights, kept.means, kept.covs, kept.labels)
-    return kept, keep
+    return Mixture(weights, means, covs, labels), keep
+
+
+@njit(cache=True, nogil=True)
+def prune_kernel(  # pragma: no cover - compiled; tested through prune
+    weights: FloatArray, means: FloatArray, covs: FloatArray, labels: IntArray, threshold: float
+) -> tuple[FloatArray, FloatArray, FloatArray, IntArray, NDArray[np.bool_], int]:
+    """(weights, means, covs, labels) of the components with w > T, the kept mask and how many
+    were kept; the arrays given when all are kept."""
+    n = weights.shape[0]
+    keep = np.empty(n, dtype=np.bool_)
+    n_kept = _keep_heavy(weights, threshold, keep)
+    if n_kept == n:
+        return weights, means, covs, labels, keep, n_kept
+    w_out, m_out = np.empty(n_kept), np.empty((n_kept, means.shape[1]))
+    p_out = np.empty((n_kept, means.shape[1], means.shape[1]))
+    labels_out = np.empty(n_kept, dtype=np.int64)
+    _compress(keep, weights, means, covs, labels, w_out, m_out, p_out, labels_out)
+    return w_out, m_out, p_out, labels_out, keep, n_kept
 
 
 @njit(cache=True, nogil=True)
@@ -106,18 +118,48 @@ def merge(
     n = mix.size
     if n == 0:
         return MergeResult(mix, np.zeros(0, dtype=np.int64))
-    order = np.argsort(-mix.weights, kind="stable")
-    seen = np.zeros(n, dtype=np.bool_) if observed is None else observed
+    weights, means, covs, labels, group_of = merge_kernel(
+        mix.weights, mix.means, mix.covs, mix.labels,
+        np.zeros(n, dtype=np.bool_) if observed is None else observed, observed is not None,
+        distance_sq_threshold, symmetric, _NO_RESOLUTION if resolution is None else resolution,
+        resolution is not None, max_components,
+    )
+    return MergeResult(Mixture(weights, means, covs, labels), group_of)
+
+
+@njit(cache=True, nogil=True)
+def merge_kernel(  # pragma: no cover - compiled; tested through merge
+    weights: FloatArray,
+    means: FloatArray,
+    covs: FloatArray,
+    labels: IntArray,
+    observed: NDArray[np.bool_],
+    label_rule: bool,
+    threshold: float,
+    symmetric: bool,
+    resolution: FloatArray,
+    has_resolution: bool,
+    max_groups: int,
+) -> tuple[FloatArray, FloatArray, FloatArray, IntArray, IntArray]:
+    """merge on arrays: the merged (weights, means, covs, labels), heaviest group first, and
+    each input component's group (-1: capped away)."""
+    n = weights.shape[0]
+    order = np.argsort(-weights, kind="mergesort")  # stable: equal weights keep their order
     group_of = np.empty(n, dtype=np.int64)
     leaders = np.empty(n, dtype=np.int64)
     n_groups = _greedy_groups(
-        mix.means, mix.covs, mix.labels, seen, order, distance_sq_threshold, symmetric,
-        observed is not None, _NO_RESOLUTION if resolution is None else resolution,
-        resolution is not None, max_components, group_of, leaders,
+        means, covs, labels, observed, order, threshold, symmetric, label_rule, resolution,
+        has_resolution, max_groups, group_of, leaders,
     )
-    if n_groups == n:  # nothing merged or dropped: the mixture stands as it is
-        return MergeResult(mix.take(leaders), group_of)
-    return MergeResult(_moment_match(mix, group_of, n_groups), group_of)
+    if n_groups == n:  # nothing merged or dropped: the components as they are, in group order
+        return weights[leaders], means[leaders], covs[leaders], labels[leaders], group_of
+    d = means.shape[1]
+    w_out = np.zeros(n_groups)
+    m_out = np.zeros((n_groups, d))
+    p_out = np.zeros((n_groups, d, d))
+    labels_out = np.full(n_groups, NO_LABEL, dtype=np.int64)
+    _moment_match_kernel(weights, means, covs, labels, group_of, w_out, m_out, p_out, labels_out)
+    return w_out, m_out, p_out, labels_out, group_of
 
 
 @njit(cache=True, nogil=True)

@@ -1,8 +1,10 @@
-"""Compiled loops of track maintenance (companion.sat.tracks): association, hold and scoring.
+"""Compiled loops of track maintenance (companion.sat.tracks): association, hold, support,
+scoring, GP windows and survival.
 
 Each step's track maintenance works on a few rows; as numpy calls its time went to call
-overhead, so the per-row logic is written out here once. Every kernel states the numpy rule it
-computes; companion.sat.tracks documents what the rules mean.
+overhead, so the per-row logic of a step's common path is written out here once, in three
+kernels (support_of, support, survivors). Every kernel states the rule it computes;
+companion.sat.tracks documents what the rules mean.
 """
 
 from __future__ import annotations
@@ -12,6 +14,8 @@ import math
 import numpy as np
 from numba import njit
 from numpy.typing import NDArray
+
+from companion.sat.mixture import NO_LABEL
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -90,7 +94,7 @@ def associate(
 
 
 @njit(cache=True, nogil=True)
-def hold(
+def _hold(
     supported_by: IntArray, idle: IntArray, track_ids: IntArray, labels: IntArray,
     weights: FloatArray,
 ) -> None:
@@ -106,48 +110,183 @@ def hold(
 
 
 @njit(cache=True, nogil=True)
-def score_deltas(
-    covs: FloatArray, p_in: FloatArray, hit: BoolArray, r_cov: FloatArray,
-    p_detect: float, clutter_per_m2: float, gate_sq: float,
-) -> FloatArray:
-    """Each row's log-likelihood ratio increment: log(p_D / p_FA) for a detection, p_FA =
-    min(1/2, kappa pi U sqrt|P + R|) (Eq. track_score_hit), else log(1 - p_D p(F)) (Eq.
-    track_score_miss)."""
-    out = np.empty(hit.shape[0])
-    for k in range(hit.shape[0]):
-        if hit[k]:
-            a00 = covs[k, 0, 0] + r_cov[0, 0]
-            a01 = covs[k, 0, 1] + r_cov[0, 1]
-            a10 = covs[k, 1, 0] + r_cov[1, 0]
-            a11 = covs[k, 1, 1] + r_cov[1, 1]
-            gate_area_m2 = math.pi * gate_sq * math.sqrt(a00 * a11 - a01 * a10)
-            p_fa = min(0.5, clutter_per_m2 * gate_area_m2)
-            out[k] = math.log(max(p_detect, 1e-300) / max(p_fa, 1e-300))
-        else:
-            out[k] = math.log1p(-min(p_detect * p_in[k], 1.0 - 1e-12))
-    return out
+def support_of(
+    track_ids: IntArray, track_means: FloatArray, track_covs: FloatArray, confirmed: BoolArray,
+    moving: bool, est_rows: IntArray, labels: IntArray, means: FloatArray, covs: FloatArray,
+    weights: FloatArray, detected: BoolArray, gate_sq: float,
+) -> tuple[IntArray, BoolArray, IntArray, IntArray, BoolArray, IntArray]:
+    """Which component supports each track this step, from the estimates (mixture rows est_rows)
+    and the mixture's labels: (supported_by (T,) mixture row or -1, hit (T,) supported by a
+    detection, the supported rows, those of them missed, coasting (T,), the estimates that
+    continue no track).
+
+    An estimate continues the track `associate` gives it; a confirmed track with no estimate is
+    held by the heaviest component labelled with its id (`_hold`); a track is hit when the
+    estimate that continues it owes its weight to a detection; a confirmed track of moving
+    targets that nothing supports coasts.
+    """
+    n_tracks = track_ids.shape[0]
+    assigned = associate(  # Eq. gate, Panta et al.'s association
+        track_ids, track_means, track_covs, labels[est_rows], means[est_rows], covs[est_rows],
+        gate_sq,
+    )
+    supported_by = np.full(n_tracks, -1, dtype=np.int64)
+    hit = np.zeros(n_tracks, dtype=np.bool_)
+    for e in range(est_rows.shape[0]):
+        if assigned[e] >= 0:
+            supported_by[assigned[e]] = est_rows[e]
+            hit[assigned[e]] = detected[est_rows[e]]
+    idle = np.flatnonzero((supported_by < 0) & confirmed)
+    if idle.size:
+        _hold(supported_by, idle, track_ids, labels, weights)
+    supported = supported_by >= 0
+    coasting = ~supported & confirmed & moving
+    return (supported_by, hit, np.flatnonzero(supported), np.flatnonzero(supported & ~hit),
+            coasting, est_rows[assigned < 0])
 
 
 @njit(cache=True, nogil=True)
-def supported_rows(
+def _score_delta(
+    cov: FloatArray, p_in: float, hit: bool, r_cov: FloatArray, p_detect: float,
+    clutter_per_m2: float, gate_sq: float,
+) -> float:
+    """A supported track's log-likelihood ratio increment: log(p_D / p_FA) for a detection, p_FA =
+    min(1/2, kappa pi U sqrt|P + R|) (Eq. track_score_hit), else log(1 - p_D p(F)) (Eq.
+    track_score_miss); P is the supporting component's covariance."""
+    if hit:
+        a00 = cov[0, 0] + r_cov[0, 0]
+        a01 = cov[0, 1] + r_cov[0, 1]
+        a10 = cov[1, 0] + r_cov[1, 0]
+        a11 = cov[1, 1] + r_cov[1, 1]
+        gate_area_m2 = math.pi * gate_sq * math.sqrt(a00 * a11 - a01 * a10)
+        p_fa = min(0.5, clutter_per_m2 * gate_area_m2)
+        return math.log(max(p_detect, 1e-300) / max(p_fa, 1e-300))
+    return math.log1p(-min(p_detect * p_in, 1.0 - 1e-12))
+
+
+@njit(cache=True, nogil=True)
+def push_window(
+    win_t_s: FloatArray, win_xy: FloatArray, win_count: IntArray, row: int, t_s: float,
+    xy: FloatArray, window: int,
+) -> None:
+    """Shift row's GP window left by one and put a detection at t_s, position xy, at its right
+    end; its count grows by one up to `window`. In place."""
+    width = win_t_s.shape[1]
+    for w in range(width - 1):
+        win_t_s[row, w] = win_t_s[row, w + 1]
+        win_xy[row, w, 0] = win_xy[row, w + 1, 0]
+        win_xy[row, w, 1] = win_xy[row, w + 1, 1]
+    win_t_s[row, width - 1] = t_s
+    win_xy[row, width - 1, 0] = xy[0]
+    win_xy[row, width - 1, 1] = xy[1]
+    win_count[row] = min(win_count[row] + 1, window)
+
+
+@njit(cache=True, nogil=True)
+def push_windows(
+    win_t_s: FloatArray, win_xy: FloatArray, win_count: IntArray, rows: IntArray, t_s: float,
+    xy: FloatArray, window: int,
+) -> None:
+    """push_window for each of rows, with positions xy (k, 2); in place."""
+    for k in range(rows.shape[0]):
+        push_window(win_t_s, win_xy, win_count, rows[k], t_s, xy[k], window)
+
+
+@njit(cache=True, nogil=True)
+def support(
     means: FloatArray, covs: FloatArray, hits: IntArray, life: IntArray, last_t_s: FloatArray,
-    seen_t_s: FloatArray, alone: BoolArray, supported_by: IntArray, hit: BoolArray,
-    mix_means: FloatArray, mix_covs: FloatArray, t_s: float,
-) -> tuple[FloatArray, FloatArray, IntArray, IntArray, FloatArray, FloatArray, BoolArray]:
-    """New (means, covs, hits, life, last_t_s, seen_t_s, alone): each row with supported_by[row]
-    >= 0 takes that component's moments and time t_s, a row with hit also counts a detection."""
+    seen_t_s: FloatArray, alone: BoolArray, score: FloatArray, confirmed: BoolArray,
+    win_t_s: FloatArray, win_xy: FloatArray, win_count: IntArray,
+    supported_by: IntArray, hit: BoolArray, p_in: FloatArray, mix_means: FloatArray,
+    mix_covs: FloatArray, t_s: float, scored: bool, r_cov: FloatArray, p_detect: float,
+    clutter_per_m2: float, gate_sq: float, max_score: float, window: int, confirm_length: int,
+    confirm_score: float,
+) -> tuple[FloatArray, FloatArray, IntArray, IntArray, FloatArray, FloatArray, BoolArray,
+           FloatArray, BoolArray, FloatArray, FloatArray, IntArray]:
+    """New (means, covs, hits, life, last_t_s, seen_t_s, alone, score, confirmed, win_t_s,
+    win_xy, win_count) after this step's support.
+
+    Each row with supported_by[row] >= 0 takes that component's moments and time t_s; a row
+    with hit also counts a detection and pushes the component's position onto its GP window.
+    When `scored` (a frame was processed), a supported row's score gains _score_delta (p_in: its
+    component's p(F), read for misses), capped at max_score. A row with confirm_length hits and
+    a score of at least confirm_score becomes confirmed.
+    """
     means, covs, hits, life = means.copy(), covs.copy(), hits.copy(), life.copy()
     last_t_s, seen_t_s, alone = last_t_s.copy(), seen_t_s.copy(), alone.copy()
+    score, confirmed = score.copy(), confirmed.copy()
+    win_t_s, win_xy, win_count = win_t_s.copy(), win_xy.copy(), win_count.copy()
     for row in range(supported_by.shape[0]):
         comp = supported_by[row]
         if hit[row]:
             hits[row] += 1
             seen_t_s[row] = t_s
-        if comp < 0:
+        if comp >= 0:
+            means[row] = mix_means[comp]
+            covs[row] = mix_covs[comp]
+            life[row] += 1
+            last_t_s[row] = t_s
+            alone[row] = False
+            if scored:  # Eqs. track_score_hit, track_score_miss
+                total = score[row] + _score_delta(
+                    mix_covs[comp], p_in[row], hit[row], r_cov, p_detect, clutter_per_m2, gate_sq
+                )
+                score[row] = max_score if total > max_score else total
+            if hit[row]:  # the GP window holds detected positions only
+                push_window(win_t_s, win_xy, win_count, row, t_s, mix_means[comp], window)
+        if hits[row] >= confirm_length and score[row] >= confirm_score:
+            confirmed[row] = True
+    return (means, covs, hits, life, last_t_s, seen_t_s, alone, score, confirmed, win_t_s,
+            win_xy, win_count)
+
+
+@njit(cache=True, nogil=True)
+def survivors(
+    supported_by: IntArray, coasting: BoolArray, confirmed: BoolArray, last_t_s: FloatArray,
+    existence: FloatArray, confirmed_now: BoolArray, track_ids: IntArray, n_components: int,
+    t_s: float, timeout_s: float, drop_existence: float,
+) -> tuple[BoolArray, IntArray, int, int]:
+    """(alive (T,), labels (n_components,), number alive, number of the alive confirmed this
+    step). A track lives on when it is supported, coasting, or confirmed and supported within
+    timeout_s (confirmed, last_t_s: before this step), and its existence is at least
+    drop_existence; each component supporting a live track is labelled with its id, the others
+    with NO_LABEL."""
+    alive = np.empty(supported_by.shape[0], dtype=np.bool_)
+    labels = np.full(n_components, NO_LABEL, dtype=np.int64)
+    n_alive = n_new = 0
+    for row in range(supported_by.shape[0]):
+        kept = supported_by[row] >= 0 or coasting[row] or (
+            confirmed[row] and t_s - last_t_s[row] <= timeout_s)
+        alive[row] = kept and existence[row] >= drop_existence
+        if not alive[row]:
             continue
-        means[row] = mix_means[comp]
-        covs[row] = mix_covs[comp]
-        life[row] += 1
-        last_t_s[row] = t_s
-        alone[row] = False
-    return means, covs, hits, life, last_t_s, seen_t_s, alone
+        n_alive += 1
+        n_new += confirmed_now[row] and not confirmed[row]
+        if supported_by[row] >= 0:
+            labels[supported_by[row]] = track_ids[row]
+    return alive, labels, n_alive, n_new
+
+
+@njit(cache=True, nogil=True)
+def fresh_windows(
+    confirmed: BoolArray, win_count: IntArray, win_t_s: FloatArray, t_s: float
+) -> IntArray:
+    """The confirmed rows whose GP window gained a detection at t_s (its newest entry)."""
+    fresh = np.zeros(confirmed.shape[0], dtype=np.bool_)
+    for row in range(confirmed.shape[0]):
+        fresh[row] = confirmed[row] and win_count[row] > 0 and win_t_s[row, -1] == t_s
+    return np.flatnonzero(fresh)
+
+
+@njit(cache=True, nogil=True)
+def write_rows(
+    buf_ids: IntArray, buf_t_s: FloatArray, buf_means: FloatArray, buf_covs: FloatArray,
+    start: int, ids: IntArray, t_s: float, means: FloatArray, covs: FloatArray, rows: IntArray,
+) -> None:
+    """Write the given rows of (ids, means, covs), at time t_s, into the log's buffers from row
+    start on, in order."""
+    for k in range(rows.shape[0]):
+        buf_ids[start + k] = ids[rows[k]]
+        buf_t_s[start + k] = t_s
+        buf_means[start + k] = means[rows[k]]
+        buf_covs[start + k] = covs[rows[k]]

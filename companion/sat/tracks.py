@@ -38,7 +38,7 @@ from companion.sat import track_kernels as kernels
 from companion.sat.fov import Region, prob_in_region, truncation_moments
 from companion.sat.gp import GpFit, GpPredictor
 from companion.sat.linalg import inv_det_2x2
-from companion.sat.mixture import NO_LABEL, Mixture
+from companion.sat.mixture import Mixture
 from companion.sat.motion import TargetMotion, iou_variance_m2
 
 FloatArray = NDArray[np.float64]
@@ -115,9 +115,14 @@ class TrackLog:
         """A log with no rows."""
         return TrackLog(_LogBuffer(dim, 1024), 0)
 
-    def append(self, ids: IntArray, t_s: float, means: FloatArray, covs: FloatArray) -> TrackLog:
-        """A view with the rows of this one followed by the given rows."""
-        k = ids.shape[0]
+    def append(
+        self, ids: IntArray, t_s: float, means: FloatArray, covs: FloatArray,
+        rows: IntArray | None = None,
+    ) -> TrackLog:
+        """A view with the rows of this one followed by the given rows (only `rows` of the given
+        arrays, in that order, when given)."""
+        picked = np.arange(ids.shape[0]) if rows is None else rows
+        k = picked.shape[0]
         if k == 0:
             return self
         buf = self.buffer
@@ -127,10 +132,8 @@ class TrackLog:
             for name in ("ids", "t_s", "means", "covs"):
                 getattr(grown, name)[: self.length] = getattr(buf, name)[: self.length]
             buf = grown
-        buf.ids[self.length : end] = ids
-        buf.t_s[self.length : end] = t_s
-        buf.means[self.length : end] = means
-        buf.covs[self.length : end] = covs
+        kernels.write_rows(buf.ids, buf.t_s, buf.means, buf.covs, self.length, ids, t_s, means,
+                           covs, picked)
         buf.used = end
         return TrackLog(buf, end)
 
@@ -307,26 +310,15 @@ def maintain(
     step, which scores nothing).
     """
     gating = _gating_view(tracks, t_s, params.motion)
-    assigned = kernels.associate(  # Eq. gate, Panta et al.'s association
-        gating.ids, gating.means, gating.covs, mix.labels[est_rows], mix.means[est_rows],
-        mix.covs[est_rows], params.gate_sq,
+    supported_by, hit, rows, missed, coasting, new_rows = kernels.support_of(
+        gating.ids, gating.means, gating.covs, tracks.confirmed, params.motion.speed_m_s > 0.0,
+        est_rows, mix.labels, mix.means, mix.covs, mix.weights, detected, params.gate_sq,
     )
-    has_estimate = assigned >= 0
-    supported_by = np.full(tracks.size, -1, dtype=np.int64)  # mixture row supporting each track
-    supported_by[assigned[has_estimate]] = est_rows[has_estimate]
-    # Hold: a confirmed track with no estimate is kept by its labelled component, if it survives.
-    idle = ((supported_by < 0) & tracks.confirmed).nonzero()[0]
-    if idle.size:
-        kernels.hold(supported_by, idle, tracks.ids, mix.labels, mix.weights)
-    hit = np.zeros(tracks.size, dtype=bool)
-    hit[assigned[has_estimate]] = detected[est_rows[has_estimate]]
-
-    supported = supported_by >= 0
-    updated = _support(tracks, supported, supported_by, hit, mix, t_s, params, evidence)
+    updated = _support(tracks, rows, missed, supported_by, hit, mix, t_s, params, evidence)
     # A moving target's confirmed track that nothing supports coasts on its growing uncertainty
     # until the frames refute it; a stationary one's ends after the timeout.
-    coasting = ~supported & tracks.confirmed & (params.motion.speed_m_s > 0.0)
-    updated = _coast(updated, coasting.nonzero()[0], t_s, params, evidence)
+    if coasting.any():
+        updated = _coast(updated, coasting.nonzero()[0], t_s, params, evidence)
     existence = updated.existence
     if params.area is not None and coasting.any():
         # a track coasting alone exists only as far as its Gaussian lies in the search area
@@ -335,15 +327,12 @@ def maintain(
         existence[coasting] *= prob_in_region(
             updated.means[coasting, :2], honest, params.area, check=False
         )
-    alive = (
-        supported | coasting | (tracks.confirmed & (t_s - tracks.last_t_s <= params.timeout_s))
-    ) & (existence >= params.drop_existence)
-    survivors = updated if alive.all() else updated.take(alive)
-    new_rows = est_rows[~has_estimate]
-    labels = np.full(mix.size, NO_LABEL, dtype=np.int64)
-    held = supported[alive]
-    labels[supported_by[alive][held]] = survivors.ids[held]
-    if evidence is not None and params.motion.speed_m_s > 0.0:
+    alive, labels, n_alive, n_new = kernels.survivors(
+        supported_by, coasting, tracks.confirmed, tracks.last_t_s, existence, updated.confirmed,
+        tracks.ids, mix.size, t_s, params.timeout_s, params.drop_existence,
+    )
+    survivors = updated if n_alive == tracks.size else updated.take(alive)
+    if n_new and evidence is not None and params.motion.speed_m_s > 0.0:
         survivors, labels = _absorb(
             survivors, labels, tracks.confirmed[alive], t_s, params, evidence.birth_per_m2
         )
@@ -400,42 +389,10 @@ def _absorb(
     return replace(tracks, **rows, log=log).take(~ended), labels
 
 
-def _scores(
-    tracks: Tracks,
-    rows: IntArray,
-    comp: IntArray,
-    hit: BoolArray,
-    mix: Mixture,
-    params: TrackParams,
-    evidence: Evidence | None,
-) -> FloatArray:
-    """The tracks' scores after this step's evidence (Eqs. track_score_hit, track_score_miss).
-
-    Rows supported by a component are scored with that component's Gaussian: a detection adds
-    log(p_D / p_FA), a miss log(1 - p_D p(F)); unsupported rows and blind steps score nothing.
-    """
-    score = tracks.score.copy()
-    if evidence is None or rows.size == 0:
-        return score
-    hits = hit[rows]
-    p_in = np.zeros(rows.size)
-    missed = (~hits).nonzero()[0]
-    if missed.size:
-        miss_comp = comp[missed]
-        p_in[missed] = prob_in_region(
-            mix.means[miss_comp, :2], mix.covs[miss_comp, :2, :2], evidence.region, check=False
-        )
-    delta = kernels.score_deltas(  # Eqs. track_score_hit, track_score_miss
-        mix.covs[comp], p_in, hits, evidence.r_cov, evidence.p_detect, evidence.clutter_per_m2,
-        params.gate_sq,
-    )
-    score[rows] = np.minimum(score[rows] + delta, _logit(params.max_existence))
-    return score
-
-
 def _support(
     tracks: Tracks,
-    supported: BoolArray,
+    rows: IntArray,
+    missed: IntArray,
     supported_by: IntArray,
     hit: BoolArray,
     mix: Mixture,
@@ -443,27 +400,39 @@ def _support(
     params: TrackParams,
     evidence: Evidence | None,
 ) -> Tracks:
-    """The tracks with this step's support and evidence applied to the supported rows."""
-    rows = supported.nonzero()[0]
+    """The tracks with this step's support and evidence applied to the supported rows (`rows`;
+    `missed`: those not hit), see kernels.support.
+
+    Rows supported by a component are scored with that component's Gaussian (Eqs.
+    track_score_hit, track_score_miss); unsupported rows and blind steps score nothing. The GP
+    window holds detected positions only: a coasting track's own predictions would feed back
+    into its next prediction.
+    """
     if rows.size == 0:
         return tracks
-    comp = supported_by[rows]
-    means, covs, hits, life, last_t, seen_t, alone = kernels.supported_rows(
-        tracks.means, tracks.covs, tracks.hits, tracks.life, tracks.last_t_s, tracks.seen_t_s,
-        tracks.alone, supported_by, hit, mix.means, mix.covs, t_s,
+    p_in = np.zeros(tracks.size)
+    if evidence is not None and missed.size:
+        comp = supported_by[missed]
+        p_in[missed] = prob_in_region(
+            mix.means[comp, :2], mix.covs[comp, :2, :2], evidence.region, check=False
+        )
+    r_cov = _NO_R if evidence is None else evidence.r_cov
+    means, covs, hits, life, last_t, seen_t, alone, score, confirmed, win_t, win_xy, win_count = (
+        kernels.support(
+            tracks.means, tracks.covs, tracks.hits, tracks.life, tracks.last_t_s,
+            tracks.seen_t_s, tracks.alone, tracks.score, tracks.confirmed, tracks.win_t_s,
+            tracks.win_xy, tracks.win_count, supported_by, hit, p_in, mix.means, mix.covs, t_s,
+            evidence is not None, r_cov, 0.0 if evidence is None else evidence.p_detect,
+            0.0 if evidence is None else evidence.clutter_per_m2, params.gate_sq,
+            _logit(params.max_existence), params.window, params.confirm_length,
+            _logit(params.confirm_existence),
+        )
     )
-    score = _scores(tracks, rows, comp, hit, mix, params, evidence)
-    # The GP window holds detected positions only: a coasting track's own predictions would feed
-    # back into its next prediction.
-    seen = hit.nonzero()[0]
-    win_t, win_xy, win_count = pushed_windows(
-        tracks, seen, mix.means[supported_by[seen], :2], t_s, params.window)
-    confirm = _confirmable(hits, score, params)
     return Tracks(
         ids=tracks.ids,
         hits=hits,
         life=life,
-        confirmed=tracks.confirmed | confirm,
+        confirmed=confirmed,
         born_t_s=tracks.born_t_s,
         last_t_s=last_t,
         seen_t_s=seen_t,
@@ -477,24 +446,24 @@ def _support(
         gp_mu=tracks.gp_mu,
         gp_beta=tracks.gp_beta,
         gp_ky_inv=tracks.gp_ky_inv,
-        log=tracks.log.append(tracks.ids[rows], t_s, means[rows], covs[rows]),
+        log=tracks.log.append(tracks.ids, t_s, means, covs, rows),
         next_id=tracks.next_id,
     )
+
+
+_NO_R = np.zeros((2, 2))
+"""Placeholder R for kernels.support on a blind step, which scores nothing."""
 
 
 def pushed_windows(
     tracks: Tracks, rows: IntArray, xy: FloatArray, t_s: float, window: int
 ) -> tuple[FloatArray, FloatArray, IntArray]:
     """The GP windows (times, positions, counts) with a detection at t_s, positions xy (k, 2),
-    pushed onto the given rows; the other rows' windows are shared, not copied."""
+    pushed onto the given rows (distinct); the other rows' windows are shared, not copied."""
     if rows.size == 0:
         return tracks.win_t_s, tracks.win_xy, tracks.win_count
     win_t, win_xy, win_count = tracks.win_t_s.copy(), tracks.win_xy.copy(), tracks.win_count.copy()
-    win_t[rows, :-1] = win_t[rows, 1:]
-    win_xy[rows, :-1] = win_xy[rows, 1:]
-    win_t[rows, -1] = t_s
-    win_xy[rows, -1] = xy
-    win_count[rows] = np.minimum(win_count[rows] + 1, window)
+    kernels.push_windows(win_t, win_xy, win_count, rows, t_s, xy, window)
     return win_t, win_xy, win_count
 
 

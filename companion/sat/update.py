@@ -87,25 +87,87 @@ def no_detection(
     view, so its missed-detection hypothesis is not pushed out of it.
     """
     p_d = vis.p_d
-    if not p_d.any():  # nothing in view: (1 - 0) w = w, and no rule moves a component
-        return pred
-    weights = (1.0 - p_d) * pred.weights
-    if push is None:
-        return Mixture(weights, pred.means, pred.covs, pred.labels)
-    means = pred.means.copy()
-    if push.mode is PushMode.PAPER:
-        in_band = (p_d >= push.lower) & (p_d <= push.upper)
-        if detected is not None:
-            in_band &= ~detected
-        offset = means[in_band, :2] - sensor_xy
-        means[in_band, :2] += p_d[in_band, None] * offset  # Eq. push
-        return Mixture(weights, means, pred.covs, pred.labels)
-    if vis.first is None or vis.second is None:
+    mode = push_code(push)
+    if mode == MOMENT_PUSH and (vis.first is None or vis.second is None) and p_d.any():
         raise ValueError("the moment push rule needs visibility(..., with_moments=True)")
-    claimed = np.zeros(pred.size, dtype=np.bool_) if detected is None else detected
-    covs = pred.covs.copy()
-    _moment_kernel(p_d, vis.p_detect_in_fov, vis.first, vis.second, claimed, means, covs)
-    return Mixture(weights, means, covs, pred.labels)
+    n, d = pred.size, pred.dim
+    missed = Mixture(np.empty(n), np.empty((n, d)), np.empty((n, d, d)), pred.labels)
+    missed_kernel(
+        pred.weights, pred.means, pred.covs, p_d, vis.p_detect_in_fov,
+        NO_FIRST if vis.first is None else vis.first,
+        NO_SECOND if vis.second is None else vis.second,
+        np.zeros(n, dtype=np.bool_) if detected is None else detected, sensor_xy, mode,
+        0.0 if push is None else push.lower, 0.0 if push is None else push.upper,
+        missed.weights, missed.means, missed.covs,
+    )
+    return missed
+
+
+NO_PUSH, PAPER_PUSH, MOMENT_PUSH = 0, 1, 2
+"""The push rule as a kernel argument (push_code)."""
+
+NO_FIRST, NO_SECOND = np.zeros((0, 2)), np.zeros((0, 2, 2))
+"""Placeholder moments for missed_kernel when the push rule reads none."""
+
+
+def push_code(push: PushRule | None) -> int:
+    """The push rule for missed_kernel: NO_PUSH, PAPER_PUSH or MOMENT_PUSH."""
+    if push is None:
+        return NO_PUSH
+    return PAPER_PUSH if push.mode is PushMode.PAPER else MOMENT_PUSH
+
+
+@njit(cache=True, nogil=True)
+def missed_kernel(  # pragma: no cover - compiled; tested through no_detection
+    weights: FloatArray,
+    means: FloatArray,
+    covs: FloatArray,
+    p_d: FloatArray,
+    c: float,
+    first: FloatArray,
+    second: FloatArray,
+    claimed: NDArray[np.bool_],
+    sensor_xy: FloatArray,
+    push: int,
+    lower: float,
+    upper: float,
+    w_out: FloatArray,
+    m_out: FloatArray,
+    p_out: FloatArray,
+) -> None:
+    """Fill the no-detection components (see no_detection): w = (1 - p_D) w, and the push rule
+    (NO_PUSH, PAPER_PUSH in [lower, upper] or MOMENT_PUSH) on the unclaimed ones."""
+    w_out[:] = weights
+    m_out[:] = means
+    p_out[:] = covs
+    in_view = False
+    for j in range(p_d.shape[0]):
+        in_view = in_view or p_d[j] != 0.0
+    if not in_view:  # nothing in view: (1 - 0) w = w, and no rule moves a component
+        return
+    for j in range(p_d.shape[0]):
+        w_out[j] = (1.0 - p_d[j]) * weights[j]
+    if push == PAPER_PUSH:
+        paper_push_kernel(p_d, lower, upper, claimed, sensor_xy, m_out)
+    elif push == MOMENT_PUSH:
+        _moment_kernel(p_d, c, first, second, claimed, m_out, p_out)
+
+
+@njit(cache=True, nogil=True)
+def paper_push_kernel(  # pragma: no cover - compiled; tested through no_detection
+    p_d: FloatArray,
+    lower: float,
+    upper: float,
+    claimed: NDArray[np.bool_],
+    sensor_xy: FloatArray,
+    means: FloatArray,
+) -> None:
+    """Move each unclaimed component with p_D in [lower, upper] away from the sensor: mu <- mu +
+    p_D (mu - y) (Eq. push); in place."""
+    for j in range(p_d.shape[0]):
+        if lower <= p_d[j] <= upper and not claimed[j]:
+            for a in range(2):
+                means[j, a] += p_d[j] * (means[j, a] - sensor_xy[a])  # Eq. push
 
 
 @njit(cache=True, nogil=True)
