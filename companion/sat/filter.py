@@ -17,9 +17,16 @@ from numpy.typing import NDArray
 
 from companion.errors import InputError
 from companion.sat import lmb
-from companion.sat.birth import BirthWeight, birth_weights, born_kernel
+from companion.sat.birth import BirthWeight, born_kernel, born_weights_kernel
 from companion.sat.extract import count_estimates
-from companion.sat.fov import ConvexPolygon, Disk, Region
+from companion.sat.fov import (
+    ConvexPolygon,
+    Disk,
+    Region,
+    disk_kernel,
+    prob_in_region,
+    truncation_moments,
+)
 from companion.sat.gp import GpParams, GpPredictor
 from companion.sat.linalg import spd_2x2_faults
 from companion.sat.mixture import Mixture
@@ -32,10 +39,9 @@ from companion.sat.update import (
     NO_SECOND,
     PushMode,
     PushRule,
-    detection,
+    detection_kernel,
     missed_kernel,
     push_code,
-    visibility,
 )
 
 FloatArray = NDArray[np.float64]
@@ -272,26 +278,24 @@ def step(
         clutter = params.clutter_per_scan / area  # kappa(z): false positives uniform in the FOV
         newborn = params.birth_weight / area if params.birth is BirthWeight.ADAPTIVE else 0.0
         moments = params.push is not None and params.push.mode is PushMode.MOMENT
-        vis = visibility(predicted, region, params.p_detect, moments)
-        found = detection(predicted, vis.p_d, z, r_cov, clutter, newborn)
-        # A component that a measurement claims is in view: its missed part is not pushed out.
-        if z.shape[0]:
-            from_detections = found.children.weights.reshape(z.shape[0], n).sum(axis=0)
-            claimed = from_detections > 0.5 * predicted.weights
-        else:
-            claimed = np.zeros(n, dtype=bool)
-        # Measurement-driven birth joins the update's components before reduction, so that a
-        # newborn component on top of a known target merges into it and keeps its track's label.
-        w_new = birth_weights(params.birth, params.birth_weight, found.explained, clutter, newborn)
+        if isinstance(region, Disk):  # p(F) and its moments by the update kernel
+            p_in, first, second = _NO_P_IN, NO_FIRST, NO_SECOND
+            center_xy, radius_m = region.center_xy, region.radius_m
+        else:  # a polygon's need scipy's Owen's T: computed here
+            center_xy, radius_m = sensor_xy, 0.0
+            first, second = NO_FIRST, NO_SECOND
+            pos_means, pos_covs = predicted.means[:, :2], predicted.covs[:, :2, :2]
+            if moments:
+                p_in, first, second = truncation_moments(pos_means, pos_covs, region, check=False)
+            else:
+                p_in = prob_in_region(pos_means, pos_covs, region, check=False)
         push = params.push
-        children = found.children
         reduced, detected, est_rows, n_estimates = _reduced(*_update_kernel(
-            predicted.weights, predicted.means, predicted.covs, predicted.labels, vis.p_d,
-            params.p_detect, NO_FIRST if vis.first is None else vis.first,
-            NO_SECOND if vis.second is None else vis.second, claimed, sensor_xy,
+            predicted.weights, predicted.means, predicted.covs, predicted.labels, p_in, first,
+            second, center_xy, radius_m, moments, params.p_detect, z, r_cov, clutter, newborn,
+            params.birth is BirthWeight.ADAPTIVE, params.birth_weight, sensor_xy,
             push_code(push), 0.0 if push is None else push.lower,
-            0.0 if push is None else push.upper, children.weights, children.means,
-            children.covs, children.labels, z, w_new, r_cov, params.velocity_var_m2_s2,
+            0.0 if push is None else push.upper, params.velocity_var_m2_s2,
             params.prune_weight, params.merge_distance_sq, params.max_components,
             params.extract_weight,
         ))
@@ -314,49 +318,80 @@ def _reduced(
     return Mixture(weights, means, covs, labels), detected, est_rows, n_estimates
 
 
+_NO_P_IN = np.zeros(0)
+"""Placeholder p(F) for _update_kernel when it computes p(F) itself (a disk)."""
+
+
 @njit(cache=True, nogil=True)
 def _update_kernel(  # pragma: no cover - compiled; tested through step
     weights: FloatArray,
     means: FloatArray,
     covs: FloatArray,
     labels: IntArray,
-    p_d: FloatArray,
-    p_detect: float,
+    p_in: FloatArray,
     first: FloatArray,
     second: FloatArray,
-    claimed: BoolArray,
+    center_xy: FloatArray,
+    radius_m: float,
+    moments: bool,
+    p_detect: float,
+    z: FloatArray,
+    r_cov: FloatArray,
+    clutter: float,
+    newborn: float,
+    adaptive: bool,
+    birth_weight: float,
     sensor_xy: FloatArray,
     push: int,
     lower: float,
     upper: float,
-    child_w: FloatArray,
-    child_m: FloatArray,
-    child_p: FloatArray,
-    child_labels: IntArray,
-    z: FloatArray,
-    w_new: FloatArray,
-    r_cov: FloatArray,
     velocity_var_m2_s2: float,
     prune_weight: float,
     merge_distance_sq: float,
     max_components: int,
     extract_weight: float,
 ) -> tuple[FloatArray, FloatArray, FloatArray, IntArray, BoolArray, IntArray, int]:
-    """The update of a step with a frame, then _reduce_kernel. The posterior is, in order: the
-    no-detection components (update.missed_kernel, the push rule sparing the claimed ones), the
-    detection children (update.detection) and one newborn component of weight w_new per
+    """The update of a step with a frame, then _reduce_kernel.
+
+    p(F) of each predicted component and, with `moments`, the raw moments of its mass in F
+    (fov.truncation_moments) are computed here for a disk (radius_m > 0, centre center_xy) and
+    given in (p_in, first, second) for a polygon. Then p_D = p(D|F) p(F) (Eq.
+    prob_of_detection), the detection children (update.detection, with the newborn intensity
+    competing), the claim of each component by the measurements (their children's weights sum
+    to more than half its own), the birth weights (birth.birth_weights, adaptive or constant).
+    The posterior is, in order: the no-detection components (update.missed_kernel, the push rule
+    sparing the claimed ones), the detection children and one newborn component per
     measurement (birth.born_kernel); the children and the newborn come from detections."""
     n, d = means.shape
-    n_children, m = child_w.shape[0], z.shape[0]
+    m = z.shape[0]
+    if radius_m > 0.0:
+        p_in = np.empty(n)
+        first, second = np.zeros((n, 2)), np.zeros((n, 2, 2))
+        disk_kernel(means, covs[:, 0, 0], covs[:, 0, 1], covs[:, 1, 1], center_xy, radius_m,
+                    2 if moments else 0, p_in, first, second)
+    p_d = p_detect * p_in  # Eq. prob_of_detection
+    n_children = m * n
     rows = n + n_children + m
     w_out, m_out = np.empty(rows), np.empty((rows, d))
     p_out, labels_out = np.empty((rows, d, d)), np.empty(rows, dtype=np.int64)
+    explained = np.zeros(m)
+    end = n + n_children
+    if n_children:
+        detection_kernel(weights, means, covs, labels, p_d, z, r_cov, clutter + newborn,
+                         w_out[n:end], m_out[n:end], p_out[n:end], labels_out[n:end], explained)
+    # A component that a measurement claims is in view: its missed part is not pushed out.
+    claimed = np.zeros(n, dtype=np.bool_)
+    for j in range(n if m else 0):
+        from_detections = 0.0
+        for k in range(m):
+            from_detections += w_out[n + k * n + j]
+        claimed[j] = from_detections > 0.5 * weights[j]
     missed_kernel(weights, means, covs, p_d, p_detect, first, second, claimed, sensor_xy, push,
                   lower, upper, w_out[:n], m_out[:n], p_out[:n])
     labels_out[:n] = labels
-    end = n + n_children
-    w_out[n:end], m_out[n:end], p_out[n:end] = child_w, child_m, child_p
-    labels_out[n:end] = child_labels
+    # Measurement-driven birth joins the update's components before reduction, so that a
+    # newborn component on top of a known target merges into it and keeps its track's label.
+    w_new = born_weights_kernel(adaptive, birth_weight, explained, clutter, newborn)
     born_kernel(z, w_new, r_cov, velocity_var_m2_s2, w_out[end:], m_out[end:], p_out[end:],
                 labels_out[end:])
     detected = np.arange(rows) >= n
