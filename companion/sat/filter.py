@@ -30,7 +30,7 @@ from companion.sat.fov import (
 from companion.sat.gp import GpParams, GpPredictor
 from companion.sat.linalg import spd_2x2_faults
 from companion.sat.mixture import Mixture
-from companion.sat.predict import LinearModel, apply_gp, predict_linear, transition
+from companion.sat.predict import LinearModel, predict, transition
 from companion.sat.reduce import merge_kernel, prune_kernel
 from companion.sat.track_kernels import fresh_windows
 from companion.sat.tracks import Evidence, TrackParams, Tracks, maintain
@@ -206,21 +206,17 @@ def _predict(state: SatState, dt_s: float, params: SatParams) -> Mixture:
     predictive variance over the step: growth that saturates at sigma_f^2 however long the target
     stays out of view, where a random walk would grow without bound.
     """
-    prior = state.mixture
     f, q = transition(params.linear_model, dt_s, params.q_m2_per_s)
-    predicted = predict_linear(prior, f, q, params.p_survive)
     tracks = state.tracks
-    if not params.use_gp or tracks.size == 0 or prior.size == 0:
-        return predicted
     lmb_kind = params.kind is FilterKind.LMB
-    if lmb_kind and params.tracks.motion.speed_m_s == 0.0:
-        # Targets said to stand still (filter.target_speed = 0): the LMB's Bernoullis stay
-        # where their own updates put them, under the linear model's noise; a GP's trend over
-        # still targets is the pose's drift, not motion.
-        return predicted
-    return apply_gp(
-        predicted, prior, tracks.ids, tracks.confirmed, tracks.gp_fit(), params.gp,
-        state.t_s, state.t_s + dt_s, incremental=lmb_kind,
+    # Targets said to stand still (filter.target_speed = 0): the LMB's Bernoullis stay where
+    # their own updates put them, under the linear model's noise; a GP's trend over still
+    # targets is the pose's drift, not motion.
+    if not params.use_gp or (lmb_kind and params.tracks.motion.speed_m_s == 0.0):
+        return predict(state.mixture, f, q, params.p_survive, params.gp)
+    return predict(
+        state.mixture, f, q, params.p_survive, params.gp, tracks.gp_fit(), tracks.ids,
+        tracks.confirmed, state.t_s, state.t_s + dt_s, incremental=lmb_kind,
     )
 
 
