@@ -368,40 +368,45 @@ def _centred_weights(  # pragma: no cover - compiled; tested through GpPredictor
 
 
 @njit(cache=True, nogil=True)
-def _half_sq_lags(  # pragma: no cover - compiled; tested through GpPredictor.fit
-    rel_q: FloatArray, lam: float
-) -> FloatArray:
-    """-0.5 ((t_i - t_j) / lambda)^2 for every pair of a window's times: the exponents of
-    Eq. gp_kernel (the exponential is numpy's, as everywhere in this module's numpy code)."""
+def _ky_inv_kernel(  # pragma: no cover - compiled; tested through GpPredictor.fit
+    rel_q: FloatArray, sf2: float, lam: float, sn2: float, out: FloatArray
+) -> bool:
+    """out <- Ky^-1 = (K(K, K) + sigma_n^2 I)^-1 (Eq. gp_kernel) for one window's times, by
+    Cholesky, Ky = L L^T, and Ky^-1 = L^-T L^-1, symmetric by construction; False (out
+    unfinished) when Ky is not positive definite to working precision."""
     n = rel_q.shape[0]
-    out = np.empty((n, n))
+    low = np.empty((n, n))  # K(K, K) + sigma_n^2 I, lower triangle, then L in place
     for i in range(n):
-        for j in range(n):
+        for j in range(i + 1):
             diff = (rel_q[i] - rel_q[j]) / lam
-            out[i, j] = -0.5 * diff * diff
-    return out
-
-
-@njit(cache=True, nogil=True)
-def _scale_add_diagonal(  # pragma: no cover - compiled; tested through GpPredictor.fit
-    ky: FloatArray, sf2: float, sn2: float
-) -> None:
-    """ky <- sf2 ky + sn2 I in place: K(K, K) + sigma_n^2 I from the exponentials (Eq.
-    gp_kernel)."""
-    n = ky.shape[0]
-    for i in range(n):
-        for j in range(n):
-            ky[i, j] = sf2 * ky[i, j]
-        ky[i, i] += sn2
-
-
-@njit(cache=True, nogil=True)
-def _symmetrise(a: FloatArray) -> None:  # pragma: no cover - compiled; tested through fit
-    """a <- (a + a^T) / 2 in place: the inverse's round-off asymmetry removed."""
-    n = a.shape[0]
-    for i in range(n):
-        for j in range(i + 1, n):
-            a[i, j] = a[j, i] = 0.5 * (a[i, j] + a[j, i])
+            low[i, j] = sf2 * math.exp(-0.5 * diff * diff)  # Eq. gp_kernel
+        low[i, i] += sn2
+    for j in range(n):
+        for i in range(j, n):
+            total = low[i, j]
+            for k in range(j):
+                total -= low[i, k] * low[j, k]
+            if i == j:
+                if not total > 0.0:
+                    return False
+                low[j, j] = math.sqrt(total)
+            else:
+                low[i, j] = total / low[j, j]
+    upper = np.zeros((n, n))  # (L^-1)^T, row by row: U[j, i] = (L^-1)[i, j]
+    for j in range(n):
+        upper[j, j] = 1.0 / low[j, j]
+        for i in range(j + 1, n):
+            total = 0.0
+            for k in range(j, i):
+                total -= low[i, k] * upper[j, k]
+            upper[j, i] = total / low[i, i]
+    for a in range(n):  # Ky^-1 = L^-T L^-1: (a, b) = sum_k U[a, k] U[b, k]
+        for b in range(a + 1):
+            total = 0.0
+            for k in range(a, n):
+                total += upper[a, k] * upper[b, k]
+            out[a, b] = out[b, a] = total
+    return True
 
 
 class GpPredictor:
@@ -505,16 +510,13 @@ class GpPredictor:
             self._cache.move_to_end(key)
             return hit
         params = self._params
-        ky = np.exp(_half_sq_lags(rel_q, params.lengthscale_s))
-        _scale_add_diagonal(ky, params.sigma_f_m**2, params.sigma_n_m**2)  # Eq. gp_kernel
-        try:
-            inv = np.asarray(np.linalg.inv(ky), dtype=np.float64)
-        except np.linalg.LinAlgError as exc:
+        inv = np.empty((rel_q.shape[0], rel_q.shape[0]))
+        if not _ky_inv_kernel(rel_q, params.sigma_f_m**2, params.lengthscale_s,
+                              params.sigma_n_m**2, inv):
             raise InputError(
                 "GP covariance K + sigma_n^2 I is numerically singular: sigma_n is too small "
                 "relative to sigma_f for these times"
-            ) from exc
-        _symmetrise(inv)
+            )
         inv.setflags(write=False)
         if self._cache_size > 0:
             self._cache[key] = inv
