@@ -28,7 +28,7 @@ from companion.sat.fov import (
     truncation_moments,
 )
 from companion.sat.gp import GpParams, GpPredictor
-from companion.sat.linalg import spd_2x2_faults
+from companion.sat.linalg import spd_2x2_faults_of
 from companion.sat.mixture import Mixture
 from companion.sat.predict import LinearModel, predict, transition
 from companion.sat.reduce import merge_kernel, prune_kernel
@@ -188,7 +188,7 @@ def _checked_r(r: object) -> FloatArray:
     (a, b), (c, d) = r_cov.tolist()
     if not all(map(math.isfinite, (a, b, c, d))):
         raise InputError("scan measurement covariance: must be finite")
-    asymmetric, indefinite = spd_2x2_faults(r_cov)
+    asymmetric, indefinite = spd_2x2_faults_of(a, b, c, d)
     if asymmetric:
         raise InputError("scan measurement covariance: must be symmetric")
     if indefinite:  # as fov accepts the components' covariances
