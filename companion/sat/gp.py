@@ -330,34 +330,38 @@ def gp_predict_rows(  # pragma: no cover - compiled; tested through predict_fit
 
 @njit(cache=True, nogil=True)
 def _window_offsets(  # pragma: no cover - compiled; tested through GpPredictor.fit
-    t_s: FloatArray, count: IntArray, rel_q: FloatArray, rel_ns: IntArray
+    t_s: FloatArray, rows: IntArray, count: IntArray, rel_q: FloatArray, rel_ns: IntArray
 ) -> None:
-    """Each row's valid times as offsets from its newest point, rounded to whole nanoseconds
-    (seconds in rel_q, integer nanoseconds in rel_ns); 0 in the columns before its count."""
-    n_rows, width = t_s.shape
-    for i in range(n_rows):
-        first = width - count[i]
+    """The valid times of each row rows[k] (its last count[k]) as offsets from its newest point,
+    rounded to whole nanoseconds (seconds in rel_q[k], integer nanoseconds in rel_ns[k]); 0 in
+    the columns before its count."""
+    width = t_s.shape[1]
+    for k in range(rows.shape[0]):
+        i = rows[k]
+        first = width - count[k]
         newest = t_s[i, width - 1]
         for w in range(width):
             ns = np.rint((t_s[i, w] - newest) * _NS_PER_S) if w >= first else 0.0
-            rel_q[i, w] = ns / _NS_PER_S
-            rel_ns[i, w] = np.int64(ns)
+            rel_q[k, w] = ns / _NS_PER_S
+            rel_ns[k, w] = np.int64(ns)
 
 
 @njit(cache=True, nogil=True)
 def _centred_weights(  # pragma: no cover - compiled; tested through GpPredictor.fit
-    y: FloatArray, count: IntArray, ky_inv: FloatArray, mu: FloatArray, beta: FloatArray
+    y: FloatArray, rows: IntArray, count: IntArray, ky_inv: FloatArray, mu: FloatArray,
+    beta: FloatArray,
 ) -> None:
-    """mu = the mean of each row's valid points, beta = Ky^-1 (y - mu) over them, 0 elsewhere
-    (see GpFit)."""
-    n_rows, width, dim = y.shape
-    for i in range(n_rows):
-        first = width - count[i]
+    """For each row i = rows[k] with count[k] valid points: mu[i] = their mean, beta[i] = Ky^-1
+    (y - mu) over them, 0 elsewhere (see GpFit)."""
+    width, dim = y.shape[1], y.shape[2]
+    for k in range(rows.shape[0]):
+        i = rows[k]
+        first = width - count[k]
         for c in range(dim):
             total = 0.0
             for w in range(first, width):
                 total += y[i, w, c]
-            mu[i, c] = total / count[i]  # constant prior mean: the window's mean
+            mu[i, c] = total / count[k]  # constant prior mean: the window's mean
         for w in range(width):
             for c in range(dim):
                 acc = 0.0
@@ -473,19 +477,32 @@ class GpPredictor:
     def _fit(self, t_arr: FloatArray, y_arr: FloatArray, c_arr: IntArray) -> GpFit:
         """fit() after its checks."""
         n_rows, width = t_arr.shape
-        count = np.minimum(c_arr, self._params.window).astype(np.int64)
         t_w = np.ascontiguousarray(t_arr, dtype=np.float64)
-        rel_q = np.empty((n_rows, width))
-        rel_ns = np.empty((n_rows, width), dtype=np.int64)
-        _window_offsets(t_w, count, rel_q, rel_ns)
-        ky_inv = np.zeros((n_rows, width, width))
-        for i in range(n_rows):
-            first = width - int(count[i])
-            ky_inv[i, first:, first:] = self._ky_inv(rel_q[i, first:], rel_ns[i, first:])
         mu = np.empty((n_rows, y_arr.shape[2]))
         beta = np.empty(y_arr.shape)
-        _centred_weights(np.ascontiguousarray(y_arr, dtype=np.float64), count, ky_inv, mu, beta)
+        ky_inv = np.zeros((n_rows, width, width))
+        self.fit_rows(t_w, np.ascontiguousarray(y_arr, dtype=np.float64), c_arr,
+                      np.arange(n_rows), mu, beta, ky_inv)
+        count = np.minimum(c_arr, self._params.window).astype(np.int64)
         return GpFit(t_w.copy() if t_w is t_arr else t_w, count, mu, beta, ky_inv)
+
+    def fit_rows(
+        self, t_s: FloatArray, y: FloatArray, counts: IntArray, rows: IntArray, mu: FloatArray,
+        beta: FloatArray, ky_inv: FloatArray,
+    ) -> None:
+        """Fit the windows `rows` (distinct) of t_s (T, W) [s], y (T, W, d) [m] with counts[i]
+        valid points (float64, unchecked: windows the tracker built itself) into those rows of
+        mu (T, d), beta (T, W, d) and ky_inv (T, W, W), in place (see GpFit)."""
+        width = t_s.shape[1]
+        count = np.minimum(counts[rows], self._params.window).astype(np.int64, copy=False)
+        rel_q = np.empty((rows.shape[0], width))
+        rel_ns = np.empty((rows.shape[0], width), dtype=np.int64)
+        _window_offsets(t_s, rows, count, rel_q, rel_ns)
+        for k, i in enumerate(rows.tolist()):
+            first = width - int(count[k])
+            ky_inv[i] = 0.0
+            ky_inv[i, first:, first:] = self._ky_inv(rel_q[k, first:], rel_ns[k, first:])
+        _centred_weights(y, rows, count, ky_inv, mu, beta)
 
     def predict(
         self, t_s: npt.ArrayLike, y: npt.ArrayLike, counts: npt.ArrayLike, t_star_s: float

@@ -15,6 +15,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from companion.sat.fov import disk_kernel
 from companion.sat.mixture import NO_LABEL
 
 FloatArray = NDArray[np.float64]
@@ -197,8 +198,9 @@ def support(
     means: FloatArray, covs: FloatArray, hits: IntArray, life: IntArray, last_t_s: FloatArray,
     seen_t_s: FloatArray, alone: BoolArray, score: FloatArray, confirmed: BoolArray,
     win_t_s: FloatArray, win_xy: FloatArray, win_count: IntArray,
-    supported_by: IntArray, hit: BoolArray, p_in: FloatArray, mix_means: FloatArray,
-    mix_covs: FloatArray, t_s: float, scored: bool, r_cov: FloatArray, p_detect: float,
+    supported_by: IntArray, hit: BoolArray, p_in: FloatArray, center_xy: FloatArray,
+    radius_m: float, mix_means: FloatArray, mix_covs: FloatArray, t_s: float, scored: bool,
+    r_cov: FloatArray, p_detect: float,
     clutter_per_m2: float, gate_sq: float, max_score: float, window: int, confirm_length: int,
     confirm_score: float,
 ) -> tuple[FloatArray, FloatArray, IntArray, IntArray, FloatArray, FloatArray, BoolArray,
@@ -208,14 +210,16 @@ def support(
 
     Each row with supported_by[row] >= 0 takes that component's moments and time t_s; a row
     with hit also counts a detection and pushes the component's position onto its GP window.
-    When `scored` (a frame was processed), a supported row's score gains _score_delta (p_in: its
-    component's p(F), read for misses), capped at max_score. A row with confirm_length hits and
-    a score of at least confirm_score becomes confirmed.
+    When `scored` (a frame was processed), a supported row's score gains _score_delta, capped
+    at max_score; a miss reads its component's p(F): computed here in a disk (radius_m > 0,
+    centre center_xy), else given in p_in (T,). A row with confirm_length hits and a score of
+    at least confirm_score becomes confirmed.
     """
     means, covs, hits, life = means.copy(), covs.copy(), hits.copy(), life.copy()
     last_t_s, seen_t_s, alone = last_t_s.copy(), seen_t_s.copy(), alone.copy()
     score, confirmed = score.copy(), confirmed.copy()
     win_t_s, win_xy, win_count = win_t_s.copy(), win_xy.copy(), win_count.copy()
+    mass, moment, second = np.empty(1), np.zeros((1, 2)), np.zeros((1, 2, 2))
     for row in range(supported_by.shape[0]):
         comp = supported_by[row]
         if hit[row]:
@@ -228,8 +232,18 @@ def support(
             last_t_s[row] = t_s
             alone[row] = False
             if scored:  # Eqs. track_score_hit, track_score_miss
+                p_f = 0.0
+                if hit[row]:
+                    pass
+                elif radius_m > 0.0:
+                    disk_kernel(mix_means[comp:comp + 1], mix_covs[comp:comp + 1, 0, 0],
+                                mix_covs[comp:comp + 1, 0, 1], mix_covs[comp:comp + 1, 1, 1],
+                                center_xy, radius_m, 0, mass, moment, second)
+                    p_f = mass[0]
+                else:
+                    p_f = p_in[row]
                 total = score[row] + _score_delta(
-                    mix_covs[comp], p_in[row], hit[row], r_cov, p_detect, clutter_per_m2, gate_sq
+                    mix_covs[comp], p_f, hit[row], r_cov, p_detect, clutter_per_m2, gate_sq
                 )
                 score[row] = max_score if total > max_score else total
             if hit[row]:  # the GP window holds detected positions only
@@ -241,23 +255,42 @@ def support(
 
 
 @njit(cache=True, nogil=True)
+def existence(score: float) -> float:  # pragma: no cover - compiled
+    """The probability that a track's target exists, from its log-likelihood ratio."""
+    return 1.0 / (1.0 + math.exp(-score))
+
+
+@njit(cache=True, nogil=True)
+def existences(score: FloatArray) -> FloatArray:  # pragma: no cover - compiled
+    """existence of each score."""
+    out = np.empty(score.shape[0])
+    for row in range(score.shape[0]):
+        out[row] = existence(score[row])
+    return out
+
+
+@njit(cache=True, nogil=True)
 def survivors(
     supported_by: IntArray, coasting: BoolArray, confirmed: BoolArray, last_t_s: FloatArray,
-    existence: FloatArray, confirmed_now: BoolArray, track_ids: IntArray, n_components: int,
-    t_s: float, timeout_s: float, drop_existence: float,
+    score: FloatArray, in_area: FloatArray, confirmed_now: BoolArray, track_ids: IntArray,
+    n_components: int, t_s: float, timeout_s: float, drop_existence: float,
 ) -> tuple[BoolArray, IntArray, int, int]:
     """(alive (T,), labels (n_components,), number alive, number of the alive confirmed this
     step). A track lives on when it is supported, coasting, or confirmed and supported within
-    timeout_s (confirmed, last_t_s: before this step), and its existence is at least
-    drop_existence; each component supporting a live track is labelled with its id, the others
-    with NO_LABEL."""
+    timeout_s (confirmed, last_t_s: before this step), and its existence (existence(score),
+    times in_area for a coasting row when in_area (T,) is given) is at least drop_existence;
+    each component supporting a live track is labelled with its id, the others with
+    NO_LABEL."""
     alive = np.empty(supported_by.shape[0], dtype=np.bool_)
     labels = np.full(n_components, NO_LABEL, dtype=np.int64)
     n_alive = n_new = 0
     for row in range(supported_by.shape[0]):
         kept = supported_by[row] >= 0 or coasting[row] or (
             confirmed[row] and t_s - last_t_s[row] <= timeout_s)
-        alive[row] = kept and existence[row] >= drop_existence
+        exists = existence(score[row])
+        if in_area.shape[0] and coasting[row]:
+            exists *= in_area[row]
+        alive[row] = kept and exists >= drop_existence
         if not alive[row]:
             continue
         n_alive += 1

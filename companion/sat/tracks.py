@@ -35,7 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.sat import track_kernels as kernels
-from companion.sat.fov import Region, prob_in_region, truncation_moments
+from companion.sat.fov import Disk, Region, prob_in_region, truncation_moments
 from companion.sat.gp import GpFit, GpPredictor
 from companion.sat.linalg import inv_det_2x2
 from companion.sat.mixture import Mixture
@@ -201,7 +201,7 @@ class Tracks:
     @property
     def existence(self) -> FloatArray:
         """(T,) probability that each track's target exists, from its score."""
-        result: FloatArray = 1.0 / (1.0 + np.exp(-self.score))
+        result: FloatArray = kernels.existences(self.score)
         return result
 
     def coasting(self, t_s: float, after_s: float) -> BoolArray:
@@ -217,9 +217,8 @@ class Tracks:
         """The tracks with the GP fits of the given rows' windows recomputed."""
         if rows.size == 0:
             return self
-        fit = gp.fit(self.win_t_s[rows], self.win_xy[rows], self.win_count[rows], check=False)
         mu, beta, ky_inv = self.gp_mu.copy(), self.gp_beta.copy(), self.gp_ky_inv.copy()
-        mu[rows], beta[rows], ky_inv[rows] = fit.mu, fit.beta, fit.ky_inv
+        gp.fit_rows(self.win_t_s, self.win_xy, self.win_count, rows, mu, beta, ky_inv)
         return replace(self, gp_mu=mu, gp_beta=beta, gp_ky_inv=ky_inv)
 
     def take(self, keep: BoolArray | IntArray) -> Tracks:
@@ -319,17 +318,17 @@ def maintain(
     # until the frames refute it; a stationary one's ends after the timeout.
     if coasting.any():
         updated = _coast(updated, coasting.nonzero()[0], t_s, params, evidence)
-    existence = updated.existence
+    in_area = _NO_P_IN
     if params.area is not None and coasting.any():
         # a track coasting alone exists only as far as its Gaussian lies in the search area
         honest = grown_covs(updated, t_s, params.motion)[coasting, :2, :2]
-        existence = existence.copy()
-        existence[coasting] *= prob_in_region(
+        in_area = np.ones(tracks.size)
+        in_area[coasting] = prob_in_region(
             updated.means[coasting, :2], honest, params.area, check=False
         )
     alive, labels, n_alive, n_new = kernels.survivors(
-        supported_by, coasting, tracks.confirmed, tracks.last_t_s, existence, updated.confirmed,
-        tracks.ids, mix.size, t_s, params.timeout_s, params.drop_existence,
+        supported_by, coasting, tracks.confirmed, tracks.last_t_s, updated.score, in_area,
+        updated.confirmed, tracks.ids, mix.size, t_s, params.timeout_s, params.drop_existence,
     )
     survivors = updated if n_alive == tracks.size else updated.take(alive)
     if n_new and evidence is not None and params.motion.speed_m_s > 0.0:
@@ -410,9 +409,12 @@ def _support(
     """
     if rows.size == 0:
         return tracks
-    p_in = np.zeros(tracks.size)
-    if evidence is not None and missed.size:
+    p_in, center_xy, radius_m = _NO_P_IN, _NO_R[0], 0.0
+    if evidence is not None and isinstance(evidence.region, Disk):  # p(F) in kernels.support
+        center_xy, radius_m = evidence.region.center_xy, evidence.region.radius_m
+    elif evidence is not None and missed.size:  # a polygon's needs scipy's Owen's T
         comp = supported_by[missed]
+        p_in = np.zeros(tracks.size)
         p_in[missed] = prob_in_region(
             mix.means[comp, :2], mix.covs[comp, :2, :2], evidence.region, check=False
         )
@@ -421,7 +423,8 @@ def _support(
         kernels.support(
             tracks.means, tracks.covs, tracks.hits, tracks.life, tracks.last_t_s,
             tracks.seen_t_s, tracks.alone, tracks.score, tracks.confirmed, tracks.win_t_s,
-            tracks.win_xy, tracks.win_count, supported_by, hit, p_in, mix.means, mix.covs, t_s,
+            tracks.win_xy, tracks.win_count, supported_by, hit, p_in, center_xy, radius_m,
+            mix.means, mix.covs, t_s,
             evidence is not None, r_cov, 0.0 if evidence is None else evidence.p_detect,
             0.0 if evidence is None else evidence.clutter_per_m2, params.gate_sq,
             _logit(params.max_existence), params.window, params.confirm_length,
@@ -453,6 +456,10 @@ def _support(
 
 _NO_R = np.zeros((2, 2))
 """Placeholder R for kernels.support on a blind step, which scores nothing."""
+
+_NO_P_IN = np.zeros(0)
+"""Placeholder p(F) for kernels.support (a disk's it computes itself, a blind step reads none)
+and in_area for kernels.survivors (no track coasting in a search area)."""
 
 
 def pushed_windows(
