@@ -23,7 +23,6 @@ later through the update's R. Times are handled relative to the prediction time 
 from __future__ import annotations
 
 import math
-from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -329,46 +328,80 @@ def gp_predict_rows(  # pragma: no cover - compiled; tested through predict_fit
 
 
 @njit(cache=True, nogil=True)
-def _window_offsets(  # pragma: no cover - compiled; tested through GpPredictor.fit
-    t_s: FloatArray, rows: IntArray, count: IntArray, rel_q: FloatArray, rel_ns: IntArray
-) -> None:
-    """The valid times of each row rows[k] (its last count[k]) as offsets from its newest point,
-    rounded to whole nanoseconds (seconds in rel_q[k], integer nanoseconds in rel_ns[k]); 0 in
-    the columns before its count."""
-    width = t_s.shape[1]
-    for k in range(rows.shape[0]):
-        i = rows[k]
-        first = width - count[k]
-        newest = t_s[i, width - 1]
-        for w in range(width):
-            ns = np.rint((t_s[i, w] - newest) * _NS_PER_S) if w >= first else 0.0
-            rel_q[k, w] = ns / _NS_PER_S
-            rel_ns[k, w] = np.int64(ns)
-
-
-@njit(cache=True, nogil=True)
-def _centred_weights(  # pragma: no cover - compiled; tested through GpPredictor.fit
-    y: FloatArray, rows: IntArray, count: IntArray, ky_inv: FloatArray, mu: FloatArray,
+def _fit_kernel(  # pragma: no cover - compiled; tested through GpPredictor.fit
+    t_s: FloatArray,
+    y: FloatArray,
+    counts: IntArray,
+    rows: IntArray,
+    window: int,
+    sf2: float,
+    lam: float,
+    sn2: float,
+    keys: IntArray,
+    lengths: IntArray,
+    invs: FloatArray,
+    stamps: IntArray,
+    memo: IntArray,
+    mu: FloatArray,
     beta: FloatArray,
-) -> None:
-    """For each row i = rows[k] with count[k] valid points: mu[i] = their mean, beta[i] = Ky^-1
-    (y - mu) over them, 0 elsewhere (see GpFit)."""
-    width, dim = y.shape[1], y.shape[2]
+    ky_inv: FloatArray,
+) -> bool:
+    """Fit the windows `rows` into those rows of mu, beta and ky_inv (see GpPredictor.fit_rows);
+    False if a Ky is not positive definite to working precision.
+
+    A row's last c = min(counts[i], window) times are taken as offsets from its newest point,
+    rounded to whole nanoseconds; Ky^-1 of those offsets comes from the memo (slot s: offsets
+    keys[s, :lengths[s]], Ky^-1 invs[s], last use stamps[s]; memo = (slots used, clock)) or from
+    _ky_inv_kernel, and then enters the memo in a free slot or the least recently used one
+    (none if the memo has no slots)."""
+    width = t_s.shape[1]
+    rel_q = np.empty(width)
+    rel_ns = np.empty(width, dtype=np.int64)
     for k in range(rows.shape[0]):
         i = rows[k]
-        first = width - count[k]
-        for c in range(dim):
+        c = min(counts[i], window)
+        first = width - c
+        for w in range(c):
+            ns = np.rint((t_s[i, first + w] - t_s[i, width - 1]) * _NS_PER_S)
+            rel_q[w] = ns / _NS_PER_S
+            rel_ns[w] = np.int64(ns)
+        ky_inv[i] = 0.0
+        block = ky_inv[i, first:, first:]
+        slot = -1
+        for s in range(memo[0]):
+            if lengths[s] == c and np.array_equal(keys[s, :c], rel_ns[:c]):
+                slot = s
+                break
+        if slot >= 0:
+            block[:, :] = invs[slot, :c, :c]
+        else:
+            if not _ky_inv_kernel(rel_q[:c], sf2, lam, sn2, block):
+                return False
+            if lengths.shape[0]:
+                if memo[0] < lengths.shape[0]:
+                    slot = memo[0]
+                    memo[0] += 1
+                else:
+                    slot = int(np.argmin(stamps))
+                keys[slot, :c] = rel_ns[:c]
+                lengths[slot] = c
+                invs[slot, :c, :c] = block
+        if slot >= 0:
+            memo[1] += 1
+            stamps[slot] = memo[1]
+        for d in range(y.shape[2]):
             total = 0.0
             for w in range(first, width):
-                total += y[i, w, c]
-            mu[i, c] = total / count[k]  # constant prior mean: the window's mean
+                total += y[i, w, d]
+            mu[i, d] = total / c  # constant prior mean: the window's mean
         for w in range(width):
-            for c in range(dim):
+            for d in range(y.shape[2]):
                 acc = 0.0
                 if w >= first:
                     for v in range(first, width):
-                        acc += ky_inv[i, w, v] * (y[i, v, c] - mu[i, c])
-                beta[i, w, c] = acc
+                        acc += ky_inv[i, w, v] * (y[i, v, d] - mu[i, d])
+                beta[i, w, d] = acc  # Ky^-1 (y - mu)
+    return True
 
 
 @njit(cache=True, nogil=True)
@@ -429,7 +462,31 @@ class GpPredictor:
             raise InputError(f"GP cache size must be >= 0, got {cache_size!r}")
         self._params = params
         self._cache_size = int(cache_size)
-        self._cache: OrderedDict[bytes, FloatArray] = OrderedDict()
+        # The memo as arrays for _fit_kernel, grown as it fills up to cache_size slots.
+        self._keys = np.zeros((0, params.window), dtype=np.int64)
+        self._lengths = np.zeros(0, dtype=np.int64)
+        self._invs = np.zeros((0, params.window, params.window))
+        self._stamps = np.zeros(0, dtype=np.int64)
+        self._memo = np.zeros(2, dtype=np.int64)
+
+    @property
+    def cache_entries(self) -> int:
+        """The number of windows' Ky^-1 memoised."""
+        return int(self._memo[0])
+
+    def _reserve(self, rows: int) -> None:
+        """Slots for `rows` more windows in the memo, up to cache_size (beyond, the least
+        recently used make room)."""
+        need = min(self._cache_size, int(self._memo[0]) + rows)
+        slots = self._lengths.shape[0]
+        if need <= slots:
+            return
+        slots = min(self._cache_size, max(need, 2 * slots, 16))
+        for name in ("_keys", "_lengths", "_invs", "_stamps"):
+            old = getattr(self, name)
+            grown = np.zeros((slots, *old.shape[1:]), dtype=old.dtype)
+            grown[: old.shape[0]] = old
+            setattr(self, name, grown)
 
     @property
     def params(self) -> GpParams:
@@ -493,16 +550,17 @@ class GpPredictor:
         """Fit the windows `rows` (distinct) of t_s (T, W) [s], y (T, W, d) [m] with counts[i]
         valid points (float64, unchecked: windows the tracker built itself) into those rows of
         mu (T, d), beta (T, W, d) and ky_inv (T, W, W), in place (see GpFit)."""
-        width = t_s.shape[1]
-        count = np.minimum(counts[rows], self._params.window).astype(np.int64, copy=False)
-        rel_q = np.empty((rows.shape[0], width))
-        rel_ns = np.empty((rows.shape[0], width), dtype=np.int64)
-        _window_offsets(t_s, rows, count, rel_q, rel_ns)
-        for k, i in enumerate(rows.tolist()):
-            first = width - int(count[k])
-            ky_inv[i] = 0.0
-            ky_inv[i, first:, first:] = self._ky_inv(rel_q[k, first:], rel_ns[k, first:])
-        _centred_weights(y, rows, count, ky_inv, mu, beta)
+        self._reserve(rows.shape[0])
+        params = self._params
+        if not _fit_kernel(
+            t_s, y, counts, rows, params.window, params.sigma_f_m**2, params.lengthscale_s,
+            params.sigma_n_m**2, self._keys, self._lengths, self._invs, self._stamps, self._memo,
+            mu, beta, ky_inv,
+        ):
+            raise InputError(
+                "GP covariance K + sigma_n^2 I is numerically singular: sigma_n is too small "
+                "relative to sigma_f for these times"
+            )
 
     def predict(
         self, t_s: npt.ArrayLike, y: npt.ArrayLike, counts: npt.ArrayLike, t_star_s: float
@@ -518,28 +576,6 @@ class GpPredictor:
         if fit.count.size:
             _check_rel(fit.t_s[:, -1:] - t_star)
         return predict_fit(self._params, fit, t_star)
-
-    def _ky_inv(self, rel_q: FloatArray, rel_ns: IntArray) -> FloatArray:
-        """(K(K, K) + sigma_n^2 I)^-1 for one window's offsets, from the cache if it has them."""
-        key = rel_ns.tobytes()
-        hit = self._cache.get(key)
-        if hit is not None:
-            self._cache.move_to_end(key)
-            return hit
-        params = self._params
-        inv = np.empty((rel_q.shape[0], rel_q.shape[0]))
-        if not _ky_inv_kernel(rel_q, params.sigma_f_m**2, params.lengthscale_s,
-                              params.sigma_n_m**2, inv):
-            raise InputError(
-                "GP covariance K + sigma_n^2 I is numerically singular: sigma_n is too small "
-                "relative to sigma_f for these times"
-            )
-        inv.setflags(write=False)
-        if self._cache_size > 0:
-            self._cache[key] = inv
-            if len(self._cache) > self._cache_size:
-                self._cache.popitem(last=False)
-        return inv
 
 
 # ---------------------------------------------------------------------------------------------
