@@ -197,40 +197,46 @@ def push_windows(
 def support(
     means: FloatArray, covs: FloatArray, hits: IntArray, life: IntArray, last_t_s: FloatArray,
     seen_t_s: FloatArray, alone: BoolArray, score: FloatArray, confirmed: BoolArray,
-    win_t_s: FloatArray, win_xy: FloatArray, win_count: IntArray,
-    supported_by: IntArray, hit: BoolArray, p_in: FloatArray, center_xy: FloatArray,
-    radius_m: float, mix_means: FloatArray, mix_covs: FloatArray, t_s: float, scored: bool,
-    r_cov: FloatArray, p_detect: float,
-    clutter_per_m2: float, gate_sq: float, max_score: float, window: int, confirm_length: int,
-    confirm_score: float,
+    win_t_s: FloatArray, win_xy: FloatArray, win_count: IntArray, track_ids: IntArray,
+    supported_by: IntArray, hit: BoolArray, coasting: BoolArray, p_in: FloatArray,
+    center_xy: FloatArray, radius_m: float, mix_means: FloatArray, mix_covs: FloatArray,
+    t_s: float, scored: bool, r_cov: FloatArray, p_detect: float, clutter_per_m2: float,
+    gate_sq: float, max_score: float, window: int, confirm_length: int, confirm_score: float,
+    log_ids: IntArray, log_t_s: FloatArray, log_means: FloatArray, log_covs: FloatArray,
+    log_start: int, timeout_s: float, drop_existence: float,
 ) -> tuple[FloatArray, FloatArray, IntArray, IntArray, FloatArray, FloatArray, BoolArray,
-           FloatArray, BoolArray, FloatArray, FloatArray, IntArray]:
+           FloatArray, BoolArray, FloatArray, FloatArray, IntArray, BoolArray, IntArray, int,
+           int, bool]:
     """New (means, covs, hits, life, last_t_s, seen_t_s, alone, score, confirmed, win_t_s,
-    win_xy, win_count) after this step's support.
+    win_xy, win_count) after this step's support, then, unless a row is coasting (its state
+    changes first), `survivors` on them: (alive, labels, number alive, number newly confirmed,
+    True); else (-, -, 0, 0, False).
 
-    Each row with supported_by[row] >= 0 takes that component's moments and time t_s; a row
-    with hit also counts a detection and pushes the component's position onto its GP window.
-    When `scored` (a frame was processed), a supported row's score gains _score_delta, capped
-    at max_score; a miss reads its component's p(F): computed here in a disk (radius_m > 0,
-    centre center_xy), else given in p_in (T,). A row with confirm_length hits and a score of
-    at least confirm_score becomes confirmed.
+    Each row with supported_by[row] >= 0 takes that component's moments and time t_s, and
+    writes them to the log's buffers from row log_start on (in row order); a row with hit also
+    counts a detection and pushes the component's position onto its GP window. When `scored`
+    (a frame was processed), a supported row's score gains _score_delta, capped at max_score;
+    a miss reads its component's p(F): computed here in a disk (radius_m > 0, centre
+    center_xy), else given in p_in (T,). A row with confirm_length hits and a score of at least
+    confirm_score becomes confirmed.
     """
-    means, covs, hits, life = means.copy(), covs.copy(), hits.copy(), life.copy()
-    last_t_s, seen_t_s, alone = last_t_s.copy(), seen_t_s.copy(), alone.copy()
-    score, confirmed = score.copy(), confirmed.copy()
-    win_t_s, win_xy, win_count = win_t_s.copy(), win_xy.copy(), win_count.copy()
+    new_means, new_covs, new_hits, new_life = means.copy(), covs.copy(), hits.copy(), life.copy()
+    new_last_t, new_seen_t, new_alone = last_t_s.copy(), seen_t_s.copy(), alone.copy()
+    new_score, new_confirmed = score.copy(), confirmed.copy()
+    new_win_t, new_win_xy, new_win_count = win_t_s.copy(), win_xy.copy(), win_count.copy()
     mass, moment, second = np.empty(1), np.zeros((1, 2)), np.zeros((1, 2, 2))
+    n_logged = 0
     for row in range(supported_by.shape[0]):
         comp = supported_by[row]
         if hit[row]:
-            hits[row] += 1
-            seen_t_s[row] = t_s
+            new_hits[row] += 1
+            new_seen_t[row] = t_s
         if comp >= 0:
-            means[row] = mix_means[comp]
-            covs[row] = mix_covs[comp]
-            life[row] += 1
-            last_t_s[row] = t_s
-            alone[row] = False
+            new_means[row] = mix_means[comp]
+            new_covs[row] = mix_covs[comp]
+            new_life[row] += 1
+            new_last_t[row] = t_s
+            new_alone[row] = False
             if scored:  # Eqs. track_score_hit, track_score_miss
                 p_f = 0.0
                 if hit[row]:
@@ -242,16 +248,35 @@ def support(
                     p_f = mass[0]
                 else:
                     p_f = p_in[row]
-                total = score[row] + _score_delta(
+                total = new_score[row] + _score_delta(
                     mix_covs[comp], p_f, hit[row], r_cov, p_detect, clutter_per_m2, gate_sq
                 )
-                score[row] = max_score if total > max_score else total
+                new_score[row] = max_score if total > max_score else total
             if hit[row]:  # the GP window holds detected positions only
-                push_window(win_t_s, win_xy, win_count, row, t_s, mix_means[comp], window)
-        if hits[row] >= confirm_length and score[row] >= confirm_score:
-            confirmed[row] = True
-    return (means, covs, hits, life, last_t_s, seen_t_s, alone, score, confirmed, win_t_s,
-            win_xy, win_count)
+                push_window(new_win_t, new_win_xy, new_win_count, row, t_s, mix_means[comp],
+                            window)
+            at = log_start + n_logged
+            log_ids[at], log_t_s[at] = track_ids[row], t_s
+            log_means[at], log_covs[at] = new_means[row], new_covs[row]
+            n_logged += 1
+        if new_hits[row] >= confirm_length and new_score[row] >= confirm_score:
+            new_confirmed[row] = True
+    decided = not coasting.any()
+    if decided:
+        alive, labels, n_alive, n_new = survivors(
+            supported_by, coasting, confirmed, last_t_s, new_score, _NO_AREA, new_confirmed,
+            track_ids, mix_means.shape[0], t_s, timeout_s, drop_existence,
+        )
+    else:
+        alive, labels = np.zeros(0, dtype=np.bool_), np.zeros(0, dtype=np.int64)
+        n_alive = n_new = 0
+    return (new_means, new_covs, new_hits, new_life, new_last_t, new_seen_t, new_alone,
+            new_score, new_confirmed, new_win_t, new_win_xy, new_win_count, alive, labels,
+            n_alive, n_new, decided)
+
+
+_NO_AREA = np.zeros(0)
+"""in_area for survivors when no row is coasting."""
 
 
 @njit(cache=True, nogil=True)

@@ -125,17 +125,29 @@ class TrackLog:
         k = picked.shape[0]
         if k == 0:
             return self
+        buf = self.writable(k)
+        kernels.write_rows(buf.ids, buf.t_s, buf.means, buf.covs, self.length, ids, t_s, means,
+                           covs, picked)
+        return self.extended(buf, k)
+
+    def writable(self, k: int) -> _LogBuffer:
+        """A buffer holding this view's rows whose next k rows no view reads: this view's own,
+        or a grown copy of its rows."""
         buf = self.buffer
         end = self.length + k
-        if buf.used != self.length or end > buf.ids.shape[0]:
+        if k and (buf.used != self.length or end > buf.ids.shape[0]):
             grown = _LogBuffer(buf.means.shape[1], max(2 * buf.ids.shape[0], end))
             for name in ("ids", "t_s", "means", "covs"):
                 getattr(grown, name)[: self.length] = getattr(buf, name)[: self.length]
             buf = grown
-        kernels.write_rows(buf.ids, buf.t_s, buf.means, buf.covs, self.length, ids, t_s, means,
-                           covs, picked)
-        buf.used = end
-        return TrackLog(buf, end)
+        return buf
+
+    def extended(self, buf: _LogBuffer, k: int) -> TrackLog:
+        """The view of this one's rows and the k written after them into buf (from writable)."""
+        if k == 0:
+            return self
+        buf.used = self.length + k
+        return TrackLog(buf, buf.used)
 
     def history(self, track_id: int) -> tuple[FloatArray, FloatArray, FloatArray]:
         """(t_s (k,), means (k, d), covs (k, d, d)) of one track, oldest first."""
@@ -313,23 +325,26 @@ def maintain(
         gating.ids, gating.means, gating.covs, tracks.confirmed, params.motion.speed_m_s > 0.0,
         est_rows, mix.labels, mix.means, mix.covs, mix.weights, detected, params.gate_sq,
     )
-    updated = _support(tracks, rows, missed, supported_by, hit, mix, t_s, params, evidence)
-    # A moving target's confirmed track that nothing supports coasts on its growing uncertainty
-    # until the frames refute it; a stationary one's ends after the timeout.
-    if coasting.any():
-        updated = _coast(updated, coasting.nonzero()[0], t_s, params, evidence)
-    in_area = _NO_P_IN
-    if params.area is not None and coasting.any():
-        # a track coasting alone exists only as far as its Gaussian lies in the search area
-        honest = grown_covs(updated, t_s, params.motion)[coasting, :2, :2]
-        in_area = np.ones(tracks.size)
-        in_area[coasting] = prob_in_region(
-            updated.means[coasting, :2], honest, params.area, check=False
-        )
-    alive, labels, n_alive, n_new = kernels.survivors(
-        supported_by, coasting, tracks.confirmed, tracks.last_t_s, updated.score, in_area,
-        updated.confirmed, tracks.ids, mix.size, t_s, params.timeout_s, params.drop_existence,
+    updated, alive, labels, n_alive, n_new, decided = _support(
+        tracks, rows, missed, supported_by, hit, coasting, mix, t_s, params, evidence
     )
+    if not decided:
+        # A moving target's confirmed track that nothing supports coasts on its growing
+        # uncertainty until the frames refute it; a stationary one's ends after the timeout.
+        updated = _coast(updated, coasting.nonzero()[0], t_s, params, evidence)
+        in_area = _NO_P_IN
+        if params.area is not None:
+            # a track coasting alone exists only as far as its Gaussian lies in the search area
+            honest = grown_covs(updated, t_s, params.motion)[coasting, :2, :2]
+            in_area = np.ones(tracks.size)
+            in_area[coasting] = prob_in_region(
+                updated.means[coasting, :2], honest, params.area, check=False
+            )
+        alive, labels, n_alive, n_new = kernels.survivors(
+            supported_by, coasting, tracks.confirmed, tracks.last_t_s, updated.score, in_area,
+            updated.confirmed, tracks.ids, mix.size, t_s, params.timeout_s,
+            params.drop_existence,
+        )
     survivors = updated if n_alive == tracks.size else updated.take(alive)
     if n_new and evidence is not None and params.motion.speed_m_s > 0.0:
         survivors, labels = _absorb(
@@ -394,21 +409,20 @@ def _support(
     missed: IntArray,
     supported_by: IntArray,
     hit: BoolArray,
+    coasting: BoolArray,
     mix: Mixture,
     t_s: float,
     params: TrackParams,
     evidence: Evidence | None,
-) -> Tracks:
+) -> tuple[Tracks, BoolArray, IntArray, int, int, bool]:
     """The tracks with this step's support and evidence applied to the supported rows (`rows`;
-    `missed`: those not hit), see kernels.support.
+    `missed`: those not hit), and which survive unless a row is coasting: see kernels.support.
 
     Rows supported by a component are scored with that component's Gaussian (Eqs.
     track_score_hit, track_score_miss); unsupported rows and blind steps score nothing. The GP
     window holds detected positions only: a coasting track's own predictions would feed back
     into its next prediction.
     """
-    if rows.size == 0:
-        return tracks
     p_in, center_xy, radius_m = _NO_P_IN, _NO_R[0], 0.0
     if evidence is not None and isinstance(evidence.region, Disk):  # p(F) in kernels.support
         center_xy, radius_m = evidence.region.center_xy, evidence.region.radius_m
@@ -419,19 +433,20 @@ def _support(
             mix.means[comp, :2], mix.covs[comp, :2, :2], evidence.region, check=False
         )
     r_cov = _NO_R if evidence is None else evidence.r_cov
-    means, covs, hits, life, last_t, seen_t, alone, score, confirmed, win_t, win_xy, win_count = (
-        kernels.support(
-            tracks.means, tracks.covs, tracks.hits, tracks.life, tracks.last_t_s,
-            tracks.seen_t_s, tracks.alone, tracks.score, tracks.confirmed, tracks.win_t_s,
-            tracks.win_xy, tracks.win_count, supported_by, hit, p_in, center_xy, radius_m,
-            mix.means, mix.covs, t_s,
-            evidence is not None, r_cov, 0.0 if evidence is None else evidence.p_detect,
-            0.0 if evidence is None else evidence.clutter_per_m2, params.gate_sq,
-            _logit(params.max_existence), params.window, params.confirm_length,
-            _logit(params.confirm_existence),
-        )
+    buf = tracks.log.writable(rows.shape[0])
+    (means, covs, hits, life, last_t, seen_t, alone, score, confirmed, win_t, win_xy, win_count,
+     alive, labels, n_alive, n_new, decided) = kernels.support(
+        tracks.means, tracks.covs, tracks.hits, tracks.life, tracks.last_t_s, tracks.seen_t_s,
+        tracks.alone, tracks.score, tracks.confirmed, tracks.win_t_s, tracks.win_xy,
+        tracks.win_count, tracks.ids, supported_by, hit, coasting, p_in, center_xy, radius_m,
+        mix.means, mix.covs, t_s, evidence is not None, r_cov,
+        0.0 if evidence is None else evidence.p_detect,
+        0.0 if evidence is None else evidence.clutter_per_m2, params.gate_sq,
+        _logit(params.max_existence), params.window, params.confirm_length,
+        _logit(params.confirm_existence), buf.ids, buf.t_s, buf.means, buf.covs,
+        tracks.log.length, params.timeout_s, params.drop_existence,
     )
-    return Tracks(
+    updated = Tracks(
         ids=tracks.ids,
         hits=hits,
         life=life,
@@ -449,9 +464,10 @@ def _support(
         gp_mu=tracks.gp_mu,
         gp_beta=tracks.gp_beta,
         gp_ky_inv=tracks.gp_ky_inv,
-        log=tracks.log.append(tracks.ids, t_s, means, covs, rows),
+        log=tracks.log.extended(buf, rows.shape[0]),
         next_id=tracks.next_id,
     )
+    return updated, alive, labels, n_alive, n_new, decided
 
 
 _NO_R = np.zeros((2, 2))
