@@ -369,7 +369,12 @@ def _fit_kernel(  # pragma: no cover - compiled; tested through GpPredictor.fit
         block = ky_inv[i, first:, first:]
         slot = -1
         for s in range(memo[0]):
-            if lengths[s] == c and np.array_equal(keys[s, :c], rel_ns[:c]):
+            if lengths[s] != c:
+                continue
+            w = 0
+            while w < c and keys[s, w] == rel_ns[w]:
+                w += 1
+            if w == c:
                 slot = s
                 break
         if slot >= 0:
