@@ -32,7 +32,6 @@ from companion.sat.linalg import spd_2x2_faults_of
 from companion.sat.mixture import Mixture
 from companion.sat.predict import LinearModel, predict, transition
 from companion.sat.reduce import merge_kernel, prune_kernel
-from companion.sat.track_kernels import fresh_windows
 from companion.sat.tracks import Evidence, TrackParams, Tracks, maintain
 from companion.sat.update import (
     NO_FIRST,
@@ -220,13 +219,6 @@ def _predict(state: SatState, dt_s: float, params: SatParams) -> Mixture:
     )
 
 
-def _refit_fresh(tracks: Tracks, t_s: float, gp: GpPredictor) -> Tracks:
-    """Only confirmed tracks are predicted by their GP: refit the windows that just changed."""
-    return tracks.refit_gp(
-        fresh_windows(tracks.confirmed, tracks.win_count, tracks.win_t_s, t_s), gp
-    )
-
-
 def step(
     state: SatState, scan: Scan, params: SatParams, gp: GpPredictor
 ) -> tuple[SatState, StepReport]:
@@ -260,7 +252,7 @@ def step(
         mixture, tracks, estimates = lmb.step(
             state.tracks, predicted, region, z, r_cov, sensor_xy, scan.t_s, params
         )
-        tracks = _refit_fresh(tracks, scan.t_s, gp)
+        tracks = tracks.refit_fresh(scan.t_s, gp)
         return SatState(scan.t_s, mixture, tracks), StepReport(estimates, dropped, region is None)
     n = predicted.size
     if region is None:
@@ -301,7 +293,7 @@ def step(
     tracks, labelled = maintain(
         state.tracks, reduced, est_rows, detected, scan.t_s, params.tracks, evidence
     )
-    tracks = _refit_fresh(tracks, scan.t_s, gp)
+    tracks = tracks.refit_fresh(scan.t_s, gp)
     report = StepReport(n_estimates, dropped, region is None)
     return SatState(scan.t_s, labelled, tracks), report
 

@@ -281,50 +281,74 @@ def gp_predict_rows(  # pragma: no cover - compiled; tested through predict_fit
     """mean = mu + k^T beta (Eq. gp_prediction), velocity = (dk/dt*)^T beta,
     var = sigma_f^2 - k^T Ky^-1 k, with k = K(t*, K) (Eq. gp_kernel), per row and time."""
     width, dim = beta.shape[1], beta.shape[2]
-    k = np.empty(width)
+    k = np.empty((times.shape[0], width))
     floor = _VAR_FLOOR_REL * sf2
-    for a in range(times.shape[0]):
-        for out in range(rows.shape[0]):
-            r = rows[out]
-            first = width - count[r]
+    for out in range(rows.shape[0]):
+        r = rows[out]
+        first = width - count[r]
+        for a in range(times.shape[0]):
             for w in range(width):
                 if w < first:
-                    k[w] = 0.0
+                    k[a, w] = 0.0
                 else:
                     scaled = (t_s[r, w] - times[a]) / lam
-                    k[w] = sf2 * math.exp(-0.5 * scaled * scaled)
+                    k[a, w] = sf2 * math.exp(-0.5 * scaled * scaled)
             for c in range(dim):
                 m = mu[r, c]
                 v = 0.0
                 for w in range(first, width):
-                    m += k[w] * beta[r, w, c]
-                    v += k[w] * (t_s[r, w] - times[a]) / (lam * lam) * beta[r, w, c]
+                    m += k[a, w] * beta[r, w, c]
+                    v += k[a, w] * (t_s[r, w] - times[a]) / (lam * lam) * beta[r, w, c]
                 mean[a, out, c] = m
                 velocity[a, out, c] = v
-            # quad = k^T Ky^-1 k = sum_w k[w] (row w of Ky^-1 . k), each row product summed in
-            # column order; four rows at a time, as independent sums that the CPU overlaps.
-            quad = 0.0
-            w = first
-            while w + 3 < width:
-                r0 = r1 = r2 = r3 = 0.0
-                for u in range(first, width):
-                    ku = k[u]
-                    r0 += ky_inv[r, w, u] * ku
-                    r1 += ky_inv[r, w + 1, u] * ku
-                    r2 += ky_inv[r, w + 2, u] * ku
-                    r3 += ky_inv[r, w + 3, u] * ku
-                quad += k[w] * r0
-                quad += k[w + 1] * r1
-                quad += k[w + 2] * r2
-                quad += k[w + 3] * r3
-                w += 4
-            while w < width:
-                row = 0.0
-                for u in range(first, width):
-                    row += ky_inv[r, w, u] * k[u]
-                quad += k[w] * row
-                w += 1
-            var[a, out] = max(sf2 - quad, floor)
+        for a in range(0, times.shape[0], 2):  # two times at a time, reading Ky^-1 once
+            b = min(a + 1, times.shape[0] - 1)
+            quad_a, quad_b = _quad_forms(ky_inv[r], k[a], k[b], first)
+            var[a, out] = max(sf2 - quad_a, floor)
+            var[b, out] = max(sf2 - quad_b, floor)
+
+
+@njit(cache=True, nogil=True)
+def _quad_forms(  # pragma: no cover - compiled; tested through predict_fit
+    ky_inv: FloatArray, k_a: FloatArray, k_b: FloatArray, first: int
+) -> tuple[float, float]:
+    """(k_a^T Ky^-1 k_a, k_b^T Ky^-1 k_b) over the columns from `first` on: sum_w k[w] (row w
+    of Ky^-1 . k), each row product summed in column order; four rows at a time, as
+    independent sums that the CPU overlaps."""
+    width = k_a.shape[0]
+    quad_a = quad_b = 0.0
+    w = first
+    while w + 3 < width:
+        a0 = a1 = a2 = a3 = b0 = b1 = b2 = b3 = 0.0
+        for u in range(first, width):
+            ka, kb = k_a[u], k_b[u]
+            c0, c1, c2, c3 = ky_inv[w, u], ky_inv[w + 1, u], ky_inv[w + 2, u], ky_inv[w + 3, u]
+            a0 += c0 * ka
+            a1 += c1 * ka
+            a2 += c2 * ka
+            a3 += c3 * ka
+            b0 += c0 * kb
+            b1 += c1 * kb
+            b2 += c2 * kb
+            b3 += c3 * kb
+        quad_a += k_a[w] * a0
+        quad_a += k_a[w + 1] * a1
+        quad_a += k_a[w + 2] * a2
+        quad_a += k_a[w + 3] * a3
+        quad_b += k_b[w] * b0
+        quad_b += k_b[w + 1] * b1
+        quad_b += k_b[w + 2] * b2
+        quad_b += k_b[w + 3] * b3
+        w += 4
+    while w < width:
+        row_a = row_b = 0.0
+        for u in range(first, width):
+            row_a += ky_inv[w, u] * k_a[u]
+            row_b += ky_inv[w, u] * k_b[u]
+        quad_a += k_a[w] * row_a
+        quad_b += k_b[w] * row_b
+        w += 1
+    return quad_a, quad_b
 
 
 @njit(cache=True, nogil=True)
@@ -410,6 +434,41 @@ def _fit_kernel(  # pragma: no cover - compiled; tested through GpPredictor.fit
 
 
 @njit(cache=True, nogil=True)
+def _refit_kernel(  # pragma: no cover - compiled; tested through GpPredictor.refit
+    t_s: FloatArray,
+    y: FloatArray,
+    counts: IntArray,
+    eligible: npt.NDArray[np.bool_],
+    t_now: float,
+    window: int,
+    sf2: float,
+    lam: float,
+    sn2: float,
+    keys: IntArray,
+    lengths: IntArray,
+    invs: FloatArray,
+    stamps: IntArray,
+    memo: IntArray,
+    mu: FloatArray,
+    beta: FloatArray,
+    ky_inv: FloatArray,
+) -> tuple[int, FloatArray, FloatArray, FloatArray]:
+    """(1, copies of mu, beta, ky_inv with the changed rows refitted), (0, the arrays given)
+    when no row changed, or (-1, ...) when a Ky is not positive definite; a row changed when it
+    is eligible and its newest point (it has one) is at t_now. See _fit_kernel."""
+    changed = np.zeros(counts.shape[0], dtype=np.bool_)
+    for i in range(counts.shape[0]):
+        changed[i] = eligible[i] and counts[i] > 0 and t_s[i, t_s.shape[1] - 1] == t_now
+    rows = np.flatnonzero(changed)
+    if rows.shape[0] == 0:
+        return 0, mu, beta, ky_inv
+    mu, beta, ky_inv = mu.copy(), beta.copy(), ky_inv.copy()
+    ok = _fit_kernel(t_s, y, counts, rows, window, sf2, lam, sn2, keys, lengths, invs, stamps,
+                     memo, mu, beta, ky_inv)
+    return 1 if ok else -1, mu, beta, ky_inv
+
+
+@njit(cache=True, nogil=True)
 def _ky_inv_kernel(  # pragma: no cover - compiled; tested through GpPredictor.fit
     rel_q: FloatArray, sf2: float, lam: float, sn2: float, out: FloatArray
 ) -> bool:
@@ -449,6 +508,12 @@ def _ky_inv_kernel(  # pragma: no cover - compiled; tested through GpPredictor.f
                 total += upper[a, k] * upper[b, k]
             out[a, b] = out[b, a] = total
     return True
+
+
+_SINGULAR = (
+    "GP covariance K + sigma_n^2 I is numerically singular: sigma_n is too small relative to "
+    "sigma_f for these times"
+)
 
 
 class GpPredictor:
@@ -562,10 +627,26 @@ class GpPredictor:
             params.sigma_n_m**2, self._keys, self._lengths, self._invs, self._stamps, self._memo,
             mu, beta, ky_inv,
         ):
-            raise InputError(
-                "GP covariance K + sigma_n^2 I is numerically singular: sigma_n is too small "
-                "relative to sigma_f for these times"
-            )
+            raise InputError(_SINGULAR)
+
+    def refit(
+        self, t_s: FloatArray, y: FloatArray, counts: IntArray, eligible: npt.NDArray[np.bool_],
+        t_now_s: float, fit: GpFit,
+    ) -> GpFit:
+        """The fit of T windows t_s (T, W) [s], y (T, W, d) [m] with counts[i] valid points
+        (unchecked, as fit_rows) given their previous `fit`: the rows that are `eligible` and
+        whose newest point is at t_now_s refitted in copies of fit's arrays, the others shared;
+        `fit` itself when there is no such row."""
+        self._reserve(counts.shape[0])
+        params = self._params
+        status, mu, beta, ky_inv = _refit_kernel(
+            t_s, y, counts, eligible, t_now_s, params.window, params.sigma_f_m**2,
+            params.lengthscale_s, params.sigma_n_m**2, self._keys, self._lengths, self._invs,
+            self._stamps, self._memo, fit.mu, fit.beta, fit.ky_inv,
+        )
+        if status < 0:
+            raise InputError(_SINGULAR)
+        return fit if status == 0 else GpFit(t_s, counts, mu, beta, ky_inv)
 
     def predict(
         self, t_s: npt.ArrayLike, y: npt.ArrayLike, counts: npt.ArrayLike, t_star_s: float

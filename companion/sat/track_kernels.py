@@ -326,17 +326,6 @@ def survivors(
 
 
 @njit(cache=True, nogil=True)
-def fresh_windows(
-    confirmed: BoolArray, win_count: IntArray, win_t_s: FloatArray, t_s: float
-) -> IntArray:
-    """The confirmed rows whose GP window gained a detection at t_s (its newest entry)."""
-    fresh = np.zeros(confirmed.shape[0], dtype=np.bool_)
-    for row in range(confirmed.shape[0]):
-        fresh[row] = confirmed[row] and win_count[row] > 0 and win_t_s[row, -1] == t_s
-    return np.flatnonzero(fresh)
-
-
-@njit(cache=True, nogil=True)
 def write_rows(
     buf_ids: IntArray, buf_t_s: FloatArray, buf_means: FloatArray, buf_covs: FloatArray,
     start: int, ids: IntArray, t_s: float, means: FloatArray, covs: FloatArray, rows: IntArray,

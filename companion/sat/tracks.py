@@ -225,13 +225,17 @@ class Tracks:
         """The GP fit of every track's window (a view, no copy)."""
         return GpFit(self.win_t_s, self.win_count, self.gp_mu, self.gp_beta, self.gp_ky_inv)
 
-    def refit_gp(self, rows: IntArray, gp: GpPredictor) -> Tracks:
-        """The tracks with the GP fits of the given rows' windows recomputed."""
-        if rows.size == 0:
+    def refit_fresh(self, t_s: float, gp: GpPredictor) -> Tracks:
+        """The tracks with the GP fits of the confirmed tracks' windows that gained a detection
+        at t_s recomputed (only confirmed tracks are predicted by their GP)."""
+        fit = gp.refit(self.win_t_s, self.win_xy, self.win_count, self.confirmed, t_s,
+                       self.gp_fit())
+        if fit.mu is self.gp_mu:
             return self
-        mu, beta, ky_inv = self.gp_mu.copy(), self.gp_beta.copy(), self.gp_ky_inv.copy()
-        gp.fit_rows(self.win_t_s, self.win_xy, self.win_count, rows, mu, beta, ky_inv)
-        return replace(self, gp_mu=mu, gp_beta=beta, gp_ky_inv=ky_inv)
+        return Tracks(self.ids, self.hits, self.life, self.confirmed, self.born_t_s,
+                      self.last_t_s, self.seen_t_s, self.score, self.alone, self.means,
+                      self.covs, self.win_t_s, self.win_xy, self.win_count, fit.mu, fit.beta,
+                      fit.ky_inv, self.log, self.next_id)
 
     def take(self, keep: BoolArray | IntArray) -> Tracks:
         """The tracks selected by a mask or an index, sharing the log."""
