@@ -117,6 +117,10 @@ _MAX_GAP_S = 1e9
 the predicted covariances (the constant-velocity Q grows as dt^3)."""
 
 
+_REGIONS = (Disk, ConvexPolygon)
+"""The kinds of region a scan may cover."""
+
+
 def _check_dim(mixture: Mixture, params: SatParams) -> None:
     """InputError unless the mixture's state dimension is the linear model's (2 or 4)."""
     if mixture.dim != params.linear_model.state_dim:
@@ -157,12 +161,14 @@ def _checked_time(scan: Scan, state: SatState) -> None:
         )
 
 
-def _checked_sensor(scan: Scan) -> FloatArray:
-    """The sensor's ground position (2,), NaN when unknown; InputError for another shape."""
+def _checked_sensor(scan: Scan) -> tuple[FloatArray, bool]:
+    """The sensor's ground position (2,), NaN when unknown, and whether it is known (finite);
+    InputError for another shape."""
     sensor_xy = _float_array(scan.sensor_xy, "scan sensor_xy")
     if sensor_xy.shape != (2,):
         raise InputError(f"scan sensor_xy: expected shape (2,), got {sensor_xy.shape}")
-    return sensor_xy
+    x, y = sensor_xy.tolist()
+    return sensor_xy, math.isfinite(x) and math.isfinite(y)
 
 
 def _checked_measurements(scan: Scan) -> tuple[FloatArray, int]:
@@ -235,11 +241,11 @@ def step(
     _checked_time(scan, state)
     _check_dim(state.mixture, params)
     z, dropped = _checked_measurements(scan)
-    sensor_xy = _checked_sensor(scan)
+    sensor_xy, pose_known = _checked_sensor(scan)
     region = scan.region
-    if region is not None and not isinstance(region, Disk | ConvexPolygon):
+    if region is not None and not isinstance(region, _REGIONS):
         raise InputError(f"scan region: must be a Disk, a ConvexPolygon or None, got {region!r}")
-    if region is not None and not np.all(np.isfinite(sensor_xy)):
+    if region is not None and not pose_known:
         region = None  # no usable pose: this frame tells nothing about where we looked
     if region is None:
         dropped += z.shape[0]

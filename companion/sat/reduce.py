@@ -259,7 +259,7 @@ def _quad(x: FloatArray, a: FloatArray) -> float:  # pragma: no cover - compiled
 @njit(cache=True, nogil=True)
 def _quad_2(a: FloatArray, x0: float, x1: float) -> float:  # pragma: no cover - compiled
     """x^T A x for a 2-vector (x0, x1), summed as _quad sums it."""
-    return x0 * (a[0, 0] * x0 + a[0, 1] * x1) + x1 * (a[1, 0] * x0 + a[1, 1] * x1)
+    return float(x0 * (a[0, 0] * x0 + a[0, 1] * x1) + x1 * (a[1, 0] * x0 + a[1, 1] * x1))
 
 
 def _moment_match(mix: Mixture, group_of: IntArray, n_groups: int) -> Mixture:
