@@ -10,6 +10,7 @@ companion.sat.tracks documents what the rules mean.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from numba import njit
@@ -323,6 +324,59 @@ def survivors(
         if supported_by[row] >= 0:
             labels[supported_by[row]] = track_ids[row]
     return alive, labels, n_alive, n_new
+
+
+@njit(cache=True, nogil=True)
+def append_tracks(
+    ids: IntArray, hits: IntArray, life: IntArray, confirmed: BoolArray, born_t_s: FloatArray,
+    last_t_s: FloatArray, seen_t_s: FloatArray, score: FloatArray, alone: BoolArray,
+    means: FloatArray, covs: FloatArray, win_t_s: FloatArray, win_xy: FloatArray,
+    win_count: IntArray, gp_mu: FloatArray, gp_beta: FloatArray, gp_ky_inv: FloatArray,
+    comp: IntArray, hit: BoolArray, mix_means: FloatArray, mix_covs: FloatArray,
+    new_score: FloatArray, t_s: float, next_id: int, confirm_length: int,
+    confirm_score: float, log_ids: IntArray, log_t_s: FloatArray, log_means: FloatArray,
+    log_covs: FloatArray, log_start: int,
+) -> tuple[IntArray, IntArray, IntArray, BoolArray, FloatArray, FloatArray, FloatArray,
+           FloatArray, BoolArray, FloatArray, FloatArray, FloatArray, FloatArray, IntArray,
+           FloatArray, FloatArray, FloatArray]:
+    """The track rows (in Tracks' field order) followed by one new track per component row
+    comp[k]: id next_id + k, born, supported and seen at t_s, that component's moments, score
+    new_score[k], one hit and one detection in its GP window if hit[k], confirmed with
+    confirm_length hits and a score of at least confirm_score, no GP fit yet. Their first rows
+    go to the log's buffers from row log_start on."""
+    n = ids.shape[0] + comp.shape[0]
+    ids, hits, life = _extended(ids, n), _extended(hits, n), _extended(life, n)
+    confirmed, born_t_s = _extended(confirmed, n), _extended(born_t_s, n)
+    last_t_s, seen_t_s = _extended(last_t_s, n), _extended(seen_t_s, n)
+    score, alone = _extended(score, n), _extended(alone, n)
+    means, covs = _extended(means, n), _extended(covs, n)
+    win_t_s, win_xy = _extended(win_t_s, n), _extended(win_xy, n)
+    win_count, gp_mu = _extended(win_count, n), _extended(gp_mu, n)
+    gp_beta, gp_ky_inv = _extended(gp_beta, n), _extended(gp_ky_inv, n)
+    last = win_t_s.shape[1] - 1
+    for k in range(comp.shape[0]):
+        row, c = n - comp.shape[0] + k, comp[k]
+        ids[row] = next_id + k
+        hits[row] = win_count[row] = 1 if hit[k] else 0
+        life[row] = 1
+        born_t_s[row] = last_t_s[row] = seen_t_s[row] = t_s
+        score[row] = new_score[k]
+        confirmed[row] = hits[row] >= confirm_length and new_score[k] >= confirm_score
+        means[row], covs[row] = mix_means[c], mix_covs[c]
+        win_t_s[row, last] = t_s  # only counted (win_count) when it is a detection
+        win_xy[row, last, 0], win_xy[row, last, 1] = mix_means[c, 0], mix_means[c, 1]
+        log_ids[log_start + k], log_t_s[log_start + k] = ids[row], t_s
+        log_means[log_start + k], log_covs[log_start + k] = means[row], covs[row]
+    return (ids, hits, life, confirmed, born_t_s, last_t_s, seen_t_s, score, alone, means, covs,
+            win_t_s, win_xy, win_count, gp_mu, gp_beta, gp_ky_inv)
+
+
+@njit(cache=True, nogil=True)
+def _extended(a: NDArray[Any], n: int) -> NDArray[Any]:  # pragma: no cover - compiled
+    """a's rows followed by zeros, n rows in all."""
+    out = np.zeros((n, *a.shape[1:]), dtype=a.dtype)
+    out[: a.shape[0]] = a
+    return out
 
 
 @njit(cache=True, nogil=True)

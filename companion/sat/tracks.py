@@ -78,14 +78,6 @@ def _logit(p: float) -> float:
     return math.log(p / (1.0 - p))
 
 
-def _confirmable(hits: IntArray, score: FloatArray, params: TrackParams) -> BoolArray:
-    """Tracks with confirm_length detections whose existence has reached confirm_existence."""
-    result: BoolArray = (hits >= params.confirm_length) & (
-        score >= _logit(params.confirm_existence)
-    )
-    return result
-
-
 class _LogBuffer:
     """Growable storage shared by TrackLog views; only ever written past every view's end."""
 
@@ -356,9 +348,9 @@ def maintain(
         )
     if new_rows.size == 0:
         return survivors, Mixture(mix.weights, mix.means, mix.covs, labels)
-    born = _new_tracks(tracks, new_rows, detected[new_rows], mix, t_s, params)
-    labels[new_rows] = born.ids
-    return _concat(survivors, born), Mixture(mix.weights, mix.means, mix.covs, labels)
+    with_new = _with_new_tracks(survivors, new_rows, detected[new_rows], mix, t_s, params)
+    labels[new_rows] = with_new.ids[survivors.size:]
+    return with_new, Mixture(mix.weights, mix.means, mix.covs, labels)
 
 
 def _absorb(
@@ -494,7 +486,7 @@ def pushed_windows(
     return win_t, win_xy, win_count
 
 
-def _new_tracks(
+def _with_new_tracks(
     tracks: Tracks,
     comp: IntArray,
     hit: BoolArray,
@@ -503,45 +495,23 @@ def _new_tracks(
     params: TrackParams,
     existence: FloatArray | None = None,
 ) -> Tracks:
-    """One new tentative track per unassigned estimate (component rows `comp`), with fresh ids.
+    """The tracks followed by one new tentative track per unassigned estimate (component rows
+    `comp`, `hit`: born of a detection), with fresh ids; the new ones' first rows go to the log
+    (kernels.append_tracks).
 
     Its score starts at the logit of `existence`, by default of its component's weight (the
     PHD's own belief in it, within [0.01, 0.99]).
     """
     k = comp.shape[0]
-    ids = tracks.next_id + np.arange(k, dtype=np.int64)
-    hits = hit.astype(np.int64)
-    win_t = np.zeros((k, params.window))
-    win_xy = np.zeros((k, params.window, 2))
-    win_t[:, -1] = t_s
-    win_xy[:, -1] = mix.means[comp, :2]  # only counted (win_count) when it is a detection
     w = np.clip(mix.weights[comp], 0.01, 0.99) if existence is None else existence
     score = np.log(w / (1.0 - w))
-    return Tracks(
-        ids=ids,
-        hits=hits,
-        life=np.ones(k, dtype=np.int64),
-        confirmed=_confirmable(hits, score, params),
-        born_t_s=np.full(k, t_s),
-        last_t_s=np.full(k, t_s),
-        seen_t_s=np.full(k, t_s),
-        score=score,
-        alone=np.zeros(k, dtype=bool),
-        means=mix.means[comp],
-        covs=mix.covs[comp],
-        win_t_s=win_t,
-        win_xy=win_xy,
-        win_count=hits.copy(),
-        gp_mu=np.zeros((k, 2)),
-        gp_beta=np.zeros((k, params.window, 2)),
-        gp_ky_inv=np.zeros((k, params.window, params.window)),
-        log=tracks.log,
-        next_id=tracks.next_id + k,
+    buf = tracks.log.writable(k)
+    rows = kernels.append_tracks(
+        tracks.ids, tracks.hits, tracks.life, tracks.confirmed, tracks.born_t_s,
+        tracks.last_t_s, tracks.seen_t_s, tracks.score, tracks.alone, tracks.means, tracks.covs,
+        tracks.win_t_s, tracks.win_xy, tracks.win_count, tracks.gp_mu, tracks.gp_beta,
+        tracks.gp_ky_inv, comp, hit, mix.means, mix.covs, score, t_s, tracks.next_id,
+        params.confirm_length, _logit(params.confirm_existence), buf.ids, buf.t_s, buf.means,
+        buf.covs, tracks.log.length,
     )
-
-
-def _concat(old: Tracks, new: Tracks) -> Tracks:
-    """Old tracks followed by new ones; the new ones' first rows go to the log."""
-    log = old.log.append(new.ids, float(new.born_t_s[0]), new.means, new.covs)
-    rows = {name: np.concatenate([getattr(old, name), getattr(new, name)]) for name in _ROW_FIELDS}
-    return Tracks(**rows, log=log, next_id=new.next_id)
+    return Tracks(*rows, log=tracks.log.extended(buf, k), next_id=tracks.next_id + k)
