@@ -179,7 +179,7 @@ def _checked_measurements(scan: Scan) -> tuple[FloatArray, int]:
     if z.ndim != 2 or z.shape[1] != 2:
         raise InputError(f"scan measurements: expected shape (m, 2), got {z.shape}")
     finite_entries = np.isfinite(z)
-    if finite_entries.all():
+    if np.count_nonzero(finite_entries) == z.size:  # all finite (faster than all())
         return z, 0
     finite = finite_entries.all(axis=1)
     return z[finite], int(z.shape[0] - finite.sum())

@@ -259,7 +259,7 @@ def grown_covs(tracks: Tracks, t_s: float, motion: TargetMotion) -> FloatArray:
 
 def _gating_view(tracks: Tracks, t_s: float, motion: TargetMotion) -> Tracks:
     """The tracks with the honest covariance for those coasting alone, for association."""
-    if not tracks.alone.any():
+    if not np.count_nonzero(tracks.alone):  # (faster than any() on a few rows)
         return tracks
     covs = np.where(tracks.alone[:, None, None], grown_covs(tracks, t_s, motion), tracks.covs)
     return replace(tracks, covs=covs)
