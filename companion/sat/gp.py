@@ -370,7 +370,8 @@ def _fit_kernel(  # pragma: no cover - compiled; tested through GpPredictor.fit
     beta: FloatArray,
     ky_inv: FloatArray,
 ) -> bool:
-    """Fit the windows `rows` into those rows of mu, beta and ky_inv (see GpPredictor.fit_rows);
+    """Fit the windows `rows` of t_s (T, W) [s], y (T, W, d) [m] with counts[i] valid points
+    into those rows of mu (T, d), beta (T, W, d) and ky_inv (T, W, W), in place (see GpFit);
     False if a Ky is not positive definite to working precision.
 
     A row's last c = min(counts[i], window) times are taken as offsets from its newest point,
@@ -608,35 +609,25 @@ class GpPredictor:
         mu = np.empty((n_rows, y_arr.shape[2]))
         beta = np.empty(y_arr.shape)
         ky_inv = np.zeros((n_rows, width, width))
-        self.fit_rows(t_w, np.ascontiguousarray(y_arr, dtype=np.float64), c_arr,
-                      np.arange(n_rows), mu, beta, ky_inv)
-        count = np.minimum(c_arr, self._params.window).astype(np.int64)
-        return GpFit(t_w.copy() if t_w is t_arr else t_w, count, mu, beta, ky_inv)
-
-    def fit_rows(
-        self, t_s: FloatArray, y: FloatArray, counts: IntArray, rows: IntArray, mu: FloatArray,
-        beta: FloatArray, ky_inv: FloatArray,
-    ) -> None:
-        """Fit the windows `rows` (distinct) of t_s (T, W) [s], y (T, W, d) [m] with counts[i]
-        valid points (float64, unchecked: windows the tracker built itself) into those rows of
-        mu (T, d), beta (T, W, d) and ky_inv (T, W, W), in place (see GpFit)."""
-        self._reserve(rows.shape[0])
+        self._reserve(n_rows)
         params = self._params
         if not _fit_kernel(
-            t_s, y, counts, rows, params.window, params.sigma_f_m**2, params.lengthscale_s,
-            params.sigma_n_m**2, self._keys, self._lengths, self._invs, self._stamps, self._memo,
-            mu, beta, ky_inv,
+            t_w, np.ascontiguousarray(y_arr, dtype=np.float64), c_arr, np.arange(n_rows),
+            params.window, params.sigma_f_m**2, params.lengthscale_s, params.sigma_n_m**2,
+            self._keys, self._lengths, self._invs, self._stamps, self._memo, mu, beta, ky_inv,
         ):
             raise InputError(_SINGULAR)
+        count = np.minimum(c_arr, params.window).astype(np.int64)
+        return GpFit(t_w.copy() if t_w is t_arr else t_w, count, mu, beta, ky_inv)
 
     def refit(
         self, t_s: FloatArray, y: FloatArray, counts: IntArray, eligible: npt.NDArray[np.bool_],
         t_now_s: float, fit: GpFit,
     ) -> GpFit:
         """The fit of T windows t_s (T, W) [s], y (T, W, d) [m] with counts[i] valid points
-        (unchecked, as fit_rows) given their previous `fit`: the rows that are `eligible` and
-        whose newest point is at t_now_s refitted in copies of fit's arrays, the others shared;
-        `fit` itself when there is no such row."""
+        (float64, unchecked: windows the tracker built itself) given their previous `fit`: the
+        rows that are `eligible` and whose newest point is at t_now_s refitted in copies of
+        fit's arrays, the others shared; `fit` itself when there is no such row."""
         self._reserve(counts.shape[0])
         params = self._params
         status, mu, beta, ky_inv = _refit_kernel(

@@ -2,9 +2,9 @@
 scoring, GP windows and survival.
 
 Each step's track maintenance works on a few rows; as numpy calls its time went to call
-overhead, so the per-row logic of a step's common path is written out here once, in three
-kernels (support_of, support, survivors). Every kernel states the rule it computes;
-companion.sat.tracks documents what the rules mean.
+overhead, so the per-row logic of a step's common path is written out here once, in a few
+kernels (support_of, support with survivors, append_tracks). Every kernel states the rule it
+computes; companion.sat.tracks documents what the rules mean.
 """
 
 from __future__ import annotations
