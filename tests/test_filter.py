@@ -11,7 +11,7 @@ from companion.errors import InputError
 from companion.sat.birth import BirthWeight, birth, birth_weights
 from companion.sat.extract import extract
 from companion.sat.filter import SatParams, Scan, _update_kernel, initial_state, step
-from companion.sat.fov import Disk
+from companion.sat.fov import ConvexPolygon, Disk, truncation_moments
 from companion.sat.gp import GpPredictor
 from companion.sat.mixture import Mixture, make_mixture
 from companion.sat.reduce import merge, prune
@@ -119,12 +119,20 @@ def test_bad_scans_raise_input_errors(scan: Scan, message: str) -> None:
 
 @pytest.mark.parametrize("mode", [PushMode.MOMENT, PushMode.PAPER, None])
 @pytest.mark.parametrize("dim", [2, 4])
-def test_the_compiled_update_is_the_public_pieces_composed(mode: PushMode | None, dim: int) -> None:
-    """filter._update_kernel gives bit for bit what the public update, birth, prune, merge and
-    extract give one after the other (the LMB calls those), with measurements, claims and the
-    push rule in play."""
+@pytest.mark.parametrize("polygon", [False, True])
+def test_the_compiled_update_is_the_public_pieces_composed(
+    mode: PushMode | None, dim: int, polygon: bool
+) -> None:
+    """filter._update_kernel gives bit for bit what the public visibility, update, birth,
+    prune, merge and extract give one after the other (the LMB calls those), with
+    measurements, claims and the push rule in play; it computes a disk's p(F) itself and is
+    given a polygon's."""
     rng = np.random.default_rng(7)
-    n, area = 12, Disk(np.array([5.0, 5.0]), 8.0)
+    n = 12
+    area: Disk | ConvexPolygon = (
+        ConvexPolygon(np.array([[-2.0, -2.0], [12.0, -2.0], [12.0, 12.0], [-2.0, 12.0]]))
+        if polygon else Disk(np.array([5.0, 5.0]), 8.0)
+    )
     means = np.zeros((n, dim))
     means[:, :2] = rng.uniform(-5.0, 15.0, (n, 2))
     covs = np.tile(np.eye(dim), (n, 1, 1)) * rng.uniform(0.2, 9.0, (n, 1, 1))
@@ -148,12 +156,16 @@ def test_the_compiled_update_is_the_public_pieces_composed(mode: PushMode | None
                                  weights=(pruned.weights * detected[kept])[merged.group_of >= 0],
                                  minlength=merged.mixture.size)
 
+    if isinstance(area, Disk):
+        p_in, first, second = np.zeros(0), NO_FIRST, NO_SECOND
+        centre, radius = area.center_xy, area.radius_m
+    else:
+        p_in, first, second = truncation_moments(pred.means[:, :2], pred.covs[:, :2, :2], area)
+        centre, radius = np.zeros(2), 0.0
     out = _update_kernel(
-        pred.weights, pred.means, pred.covs, pred.labels, vis.p_d, 0.98,
-        NO_FIRST if vis.first is None else vis.first,
-        NO_SECOND if vis.second is None else vis.second, claimed, np.array([4.0, 6.0]),
-        push_code(push), 0.05, 0.95, found.children.weights, found.children.means,
-        found.children.covs, found.children.labels, z, w_new, r_cov, 1.0, 1e-3, 10.0, 100, 0.5,
+        pred.weights, pred.means, pred.covs, pred.labels, p_in, first, second, centre, radius,
+        mode is PushMode.MOMENT, 0.98, z, r_cov, clutter, newborn, True, 1.0,
+        np.array([4.0, 6.0]), push_code(push), 0.05, 0.95, 1.0, 1e-3, 10.0, 100, 0.5,
     )
     reduced = merged.mixture
     for got, want in zip(out[:4], (reduced.weights, reduced.means, reduced.covs, reduced.labels),

@@ -216,7 +216,7 @@ def test_predictor_regular_full_windows_share_one_solve() -> None:
     y = rng.normal(size=(n_tracks, width, 2)) + np.array([500000.0, 4000000.0])
     predictor = GpPredictor(params)
     mean, var, vel = predictor.predict(t, y, np.full(n_tracks, width), float(width))
-    assert len(predictor._cache) == 1
+    assert predictor.cache_entries == 1
     np.testing.assert_array_equal(var, np.full(n_tracks, var[0]))
     for i in range(n_tracks):
         m_i, _, vel_i = gp_predict(params, t[i], y[i], float(width))
@@ -242,7 +242,7 @@ def test_cache_is_a_pure_memo() -> None:
         for a, b, c in zip(first, again, fresh, strict=True):
             np.testing.assert_array_equal(a, b)
             np.testing.assert_array_equal(a, c)
-        assert len(cached._cache) <= 3
+        assert cached.cache_entries <= 3
 
 
 def test_predictor_empty_batch() -> None:

@@ -136,12 +136,12 @@ import json, sys
 from numba.core.registry import CPUDispatcher
 from companion.config import load_config
 from companion.pipeline import Pipeline
-from companion.sat import fov, gp, predict, reduce, update
+from companion.sat import filter, fov, gp, predict, reduce, track_kernels, update
 from tests.test_pipeline import Flight, _lawnmower_xy
 
 def loaded():
     return {f"{m.__name__}.{name}": len(kernel.overloads)
-            for m in (fov, gp, predict, reduce, update)
+            for m in (filter, fov, gp, predict, reduce, track_kernels, update)
             for name, kernel in vars(m).items() if isinstance(kernel, CPUDispatcher)}
 
 flight = Flight()

@@ -33,8 +33,22 @@ def birth_weights(
     b(z) = birth_weight / |FOV| the intensity of measurements from new targets; a measurement that
     neither clutter nor the prior explains gives birth_weight / (1 + expected clutter count).
     """
-    if mode is BirthWeight.CONSTANT:
-        return np.full(explained.shape, birth_weight)
+    return born_weights_kernel(
+        mode is BirthWeight.ADAPTIVE, birth_weight, explained, clutter_intensity, birth_intensity
+    )
+
+
+@njit(cache=True, nogil=True)
+def born_weights_kernel(  # pragma: no cover - compiled; tested through birth_weights
+    adaptive: bool,
+    birth_weight: float,
+    explained: FloatArray,
+    clutter_intensity: float,
+    birth_intensity: float,
+) -> FloatArray:
+    """birth_weights with the mode as a flag (True: adaptive, False: constant)."""
+    if not adaptive:
+        return np.full(explained.shape[0], birth_weight)
     return birth_intensity / (clutter_intensity + birth_intensity + explained)
 
 

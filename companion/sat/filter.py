@@ -17,25 +17,30 @@ from numpy.typing import NDArray
 
 from companion.errors import InputError
 from companion.sat import lmb
-from companion.sat.birth import BirthWeight, birth_weights, born_kernel
+from companion.sat.birth import BirthWeight, born_kernel, born_weights_kernel
 from companion.sat.extract import count_estimates
-from companion.sat.fov import ConvexPolygon, Disk, Region
+from companion.sat.fov import (
+    ConvexPolygon,
+    Disk,
+    Region,
+    disk_kernel,
+    prob_in_region,
+    truncation_moments,
+)
 from companion.sat.gp import GpParams, GpPredictor
-from companion.sat.linalg import spd_2x2_faults
+from companion.sat.linalg import spd_2x2_faults_of
 from companion.sat.mixture import Mixture
-from companion.sat.predict import LinearModel, apply_gp, predict_linear, transition
+from companion.sat.predict import LinearModel, predict, transition
 from companion.sat.reduce import merge_kernel, prune_kernel
-from companion.sat.track_kernels import fresh_windows
 from companion.sat.tracks import Evidence, TrackParams, Tracks, maintain
 from companion.sat.update import (
     NO_FIRST,
     NO_SECOND,
     PushMode,
     PushRule,
-    detection,
+    detection_kernel,
     missed_kernel,
     push_code,
-    visibility,
 )
 
 FloatArray = NDArray[np.float64]
@@ -112,6 +117,10 @@ _MAX_GAP_S = 1e9
 the predicted covariances (the constant-velocity Q grows as dt^3)."""
 
 
+_REGIONS = (Disk, ConvexPolygon)
+"""The kinds of region a scan may cover."""
+
+
 def _check_dim(mixture: Mixture, params: SatParams) -> None:
     """InputError unless the mixture's state dimension is the linear model's (2 or 4)."""
     if mixture.dim != params.linear_model.state_dim:
@@ -152,12 +161,14 @@ def _checked_time(scan: Scan, state: SatState) -> None:
         )
 
 
-def _checked_sensor(scan: Scan) -> FloatArray:
-    """The sensor's ground position (2,), NaN when unknown; InputError for another shape."""
+def _checked_sensor(scan: Scan) -> tuple[FloatArray, bool]:
+    """The sensor's ground position (2,), NaN when unknown, and whether it is known (finite);
+    InputError for another shape."""
     sensor_xy = _float_array(scan.sensor_xy, "scan sensor_xy")
     if sensor_xy.shape != (2,):
         raise InputError(f"scan sensor_xy: expected shape (2,), got {sensor_xy.shape}")
-    return sensor_xy
+    x, y = sensor_xy.tolist()
+    return sensor_xy, math.isfinite(x) and math.isfinite(y)
 
 
 def _checked_measurements(scan: Scan) -> tuple[FloatArray, int]:
@@ -168,7 +179,7 @@ def _checked_measurements(scan: Scan) -> tuple[FloatArray, int]:
     if z.ndim != 2 or z.shape[1] != 2:
         raise InputError(f"scan measurements: expected shape (m, 2), got {z.shape}")
     finite_entries = np.isfinite(z)
-    if finite_entries.all():
+    if np.count_nonzero(finite_entries) == z.size:  # all finite (faster than all())
         return z, 0
     finite = finite_entries.all(axis=1)
     return z[finite], int(z.shape[0] - finite.sum())
@@ -182,7 +193,7 @@ def _checked_r(r: object) -> FloatArray:
     (a, b), (c, d) = r_cov.tolist()
     if not all(map(math.isfinite, (a, b, c, d))):
         raise InputError("scan measurement covariance: must be finite")
-    asymmetric, indefinite = spd_2x2_faults(r_cov)
+    asymmetric, indefinite = spd_2x2_faults_of(a, b, c, d)
     if asymmetric:
         raise InputError("scan measurement covariance: must be symmetric")
     if indefinite:  # as fov accepts the components' covariances
@@ -200,28 +211,17 @@ def _predict(state: SatState, dt_s: float, params: SatParams) -> Mixture:
     predictive variance over the step: growth that saturates at sigma_f^2 however long the target
     stays out of view, where a random walk would grow without bound.
     """
-    prior = state.mixture
     f, q = transition(params.linear_model, dt_s, params.q_m2_per_s)
-    predicted = predict_linear(prior, f, q, params.p_survive)
     tracks = state.tracks
-    if not params.use_gp or tracks.size == 0 or prior.size == 0:
-        return predicted
     lmb_kind = params.kind is FilterKind.LMB
-    if lmb_kind and params.tracks.motion.speed_m_s == 0.0:
-        # Targets said to stand still (filter.target_speed = 0): the LMB's Bernoullis stay
-        # where their own updates put them, under the linear model's noise; a GP's trend over
-        # still targets is the pose's drift, not motion.
-        return predicted
-    return apply_gp(
-        predicted, prior, tracks.ids, tracks.confirmed, tracks.gp_fit(), params.gp,
-        state.t_s, state.t_s + dt_s, incremental=lmb_kind,
-    )
-
-
-def _refit_fresh(tracks: Tracks, t_s: float, gp: GpPredictor) -> Tracks:
-    """Only confirmed tracks are predicted by their GP: refit the windows that just changed."""
-    return tracks.refit_gp(
-        fresh_windows(tracks.confirmed, tracks.win_count, tracks.win_t_s, t_s), gp
+    # Targets said to stand still (filter.target_speed = 0): the LMB's Bernoullis stay where
+    # their own updates put them, under the linear model's noise; a GP's trend over still
+    # targets is the pose's drift, not motion.
+    if not params.use_gp or (lmb_kind and params.tracks.motion.speed_m_s == 0.0):
+        return predict(state.mixture, f, q, params.p_survive, params.gp)
+    return predict(
+        state.mixture, f, q, params.p_survive, params.gp, tracks.gp_fit(), tracks.ids,
+        tracks.confirmed, state.t_s, state.t_s + dt_s, incremental=lmb_kind,
     )
 
 
@@ -241,11 +241,11 @@ def step(
     _checked_time(scan, state)
     _check_dim(state.mixture, params)
     z, dropped = _checked_measurements(scan)
-    sensor_xy = _checked_sensor(scan)
+    sensor_xy, pose_known = _checked_sensor(scan)
     region = scan.region
-    if region is not None and not isinstance(region, Disk | ConvexPolygon):
+    if region is not None and not isinstance(region, _REGIONS):
         raise InputError(f"scan region: must be a Disk, a ConvexPolygon or None, got {region!r}")
-    if region is not None and not np.all(np.isfinite(sensor_xy)):
+    if region is not None and not pose_known:
         region = None  # no usable pose: this frame tells nothing about where we looked
     if region is None:
         dropped += z.shape[0]
@@ -258,7 +258,7 @@ def step(
         mixture, tracks, estimates = lmb.step(
             state.tracks, predicted, region, z, r_cov, sensor_xy, scan.t_s, params
         )
-        tracks = _refit_fresh(tracks, scan.t_s, gp)
+        tracks = tracks.refit_fresh(scan.t_s, gp)
         return SatState(scan.t_s, mixture, tracks), StepReport(estimates, dropped, region is None)
     n = predicted.size
     if region is None:
@@ -272,26 +272,24 @@ def step(
         clutter = params.clutter_per_scan / area  # kappa(z): false positives uniform in the FOV
         newborn = params.birth_weight / area if params.birth is BirthWeight.ADAPTIVE else 0.0
         moments = params.push is not None and params.push.mode is PushMode.MOMENT
-        vis = visibility(predicted, region, params.p_detect, moments)
-        found = detection(predicted, vis.p_d, z, r_cov, clutter, newborn)
-        # A component that a measurement claims is in view: its missed part is not pushed out.
-        if z.shape[0]:
-            from_detections = found.children.weights.reshape(z.shape[0], n).sum(axis=0)
-            claimed = from_detections > 0.5 * predicted.weights
-        else:
-            claimed = np.zeros(n, dtype=bool)
-        # Measurement-driven birth joins the update's components before reduction, so that a
-        # newborn component on top of a known target merges into it and keeps its track's label.
-        w_new = birth_weights(params.birth, params.birth_weight, found.explained, clutter, newborn)
+        if isinstance(region, Disk):  # p(F) and its moments by the update kernel
+            p_in, first, second = _NO_P_IN, NO_FIRST, NO_SECOND
+            center_xy, radius_m = region.center_xy, region.radius_m
+        else:  # a polygon's need scipy's Owen's T: computed here
+            center_xy, radius_m = sensor_xy, 0.0
+            first, second = NO_FIRST, NO_SECOND
+            pos_means, pos_covs = predicted.means[:, :2], predicted.covs[:, :2, :2]
+            if moments:
+                p_in, first, second = truncation_moments(pos_means, pos_covs, region, check=False)
+            else:
+                p_in = prob_in_region(pos_means, pos_covs, region, check=False)
         push = params.push
-        children = found.children
         reduced, detected, est_rows, n_estimates = _reduced(*_update_kernel(
-            predicted.weights, predicted.means, predicted.covs, predicted.labels, vis.p_d,
-            params.p_detect, NO_FIRST if vis.first is None else vis.first,
-            NO_SECOND if vis.second is None else vis.second, claimed, sensor_xy,
+            predicted.weights, predicted.means, predicted.covs, predicted.labels, p_in, first,
+            second, center_xy, radius_m, moments, params.p_detect, z, r_cov, clutter, newborn,
+            params.birth is BirthWeight.ADAPTIVE, params.birth_weight, sensor_xy,
             push_code(push), 0.0 if push is None else push.lower,
-            0.0 if push is None else push.upper, children.weights, children.means,
-            children.covs, children.labels, z, w_new, r_cov, params.velocity_var_m2_s2,
+            0.0 if push is None else push.upper, params.velocity_var_m2_s2,
             params.prune_weight, params.merge_distance_sq, params.max_components,
             params.extract_weight,
         ))
@@ -301,7 +299,7 @@ def step(
     tracks, labelled = maintain(
         state.tracks, reduced, est_rows, detected, scan.t_s, params.tracks, evidence
     )
-    tracks = _refit_fresh(tracks, scan.t_s, gp)
+    tracks = tracks.refit_fresh(scan.t_s, gp)
     report = StepReport(n_estimates, dropped, region is None)
     return SatState(scan.t_s, labelled, tracks), report
 
@@ -314,49 +312,80 @@ def _reduced(
     return Mixture(weights, means, covs, labels), detected, est_rows, n_estimates
 
 
+_NO_P_IN = np.zeros(0)
+"""Placeholder p(F) for _update_kernel when it computes p(F) itself (a disk)."""
+
+
 @njit(cache=True, nogil=True)
 def _update_kernel(  # pragma: no cover - compiled; tested through step
     weights: FloatArray,
     means: FloatArray,
     covs: FloatArray,
     labels: IntArray,
-    p_d: FloatArray,
-    p_detect: float,
+    p_in: FloatArray,
     first: FloatArray,
     second: FloatArray,
-    claimed: BoolArray,
+    center_xy: FloatArray,
+    radius_m: float,
+    moments: bool,
+    p_detect: float,
+    z: FloatArray,
+    r_cov: FloatArray,
+    clutter: float,
+    newborn: float,
+    adaptive: bool,
+    birth_weight: float,
     sensor_xy: FloatArray,
     push: int,
     lower: float,
     upper: float,
-    child_w: FloatArray,
-    child_m: FloatArray,
-    child_p: FloatArray,
-    child_labels: IntArray,
-    z: FloatArray,
-    w_new: FloatArray,
-    r_cov: FloatArray,
     velocity_var_m2_s2: float,
     prune_weight: float,
     merge_distance_sq: float,
     max_components: int,
     extract_weight: float,
 ) -> tuple[FloatArray, FloatArray, FloatArray, IntArray, BoolArray, IntArray, int]:
-    """The update of a step with a frame, then _reduce_kernel. The posterior is, in order: the
-    no-detection components (update.missed_kernel, the push rule sparing the claimed ones), the
-    detection children (update.detection) and one newborn component of weight w_new per
+    """The update of a step with a frame, then _reduce_kernel.
+
+    p(F) of each predicted component and, with `moments`, the raw moments of its mass in F
+    (fov.truncation_moments) are computed here for a disk (radius_m > 0, centre center_xy) and
+    given in (p_in, first, second) for a polygon. Then p_D = p(D|F) p(F) (Eq.
+    prob_of_detection), the detection children (update.detection, with the newborn intensity
+    competing), the claim of each component by the measurements (their children's weights sum
+    to more than half its own), the birth weights (birth.birth_weights, adaptive or constant).
+    The posterior is, in order: the no-detection components (update.missed_kernel, the push rule
+    sparing the claimed ones), the detection children and one newborn component per
     measurement (birth.born_kernel); the children and the newborn come from detections."""
     n, d = means.shape
-    n_children, m = child_w.shape[0], z.shape[0]
+    m = z.shape[0]
+    if radius_m > 0.0:
+        p_in = np.empty(n)
+        first, second = np.zeros((n, 2)), np.zeros((n, 2, 2))
+        disk_kernel(means, covs[:, 0, 0], covs[:, 0, 1], covs[:, 1, 1], center_xy, radius_m,
+                    2 if moments else 0, p_in, first, second)
+    p_d = p_detect * p_in  # Eq. prob_of_detection
+    n_children = m * n
     rows = n + n_children + m
     w_out, m_out = np.empty(rows), np.empty((rows, d))
     p_out, labels_out = np.empty((rows, d, d)), np.empty(rows, dtype=np.int64)
+    explained = np.zeros(m)
+    end = n + n_children
+    if n_children:
+        detection_kernel(weights, means, covs, labels, p_d, z, r_cov, clutter + newborn,
+                         w_out[n:end], m_out[n:end], p_out[n:end], labels_out[n:end], explained)
+    # A component that a measurement claims is in view: its missed part is not pushed out.
+    claimed = np.zeros(n, dtype=np.bool_)
+    for j in range(n if m else 0):
+        from_detections = 0.0
+        for k in range(m):
+            from_detections += w_out[n + k * n + j]
+        claimed[j] = from_detections > 0.5 * weights[j]
     missed_kernel(weights, means, covs, p_d, p_detect, first, second, claimed, sensor_xy, push,
                   lower, upper, w_out[:n], m_out[:n], p_out[:n])
     labels_out[:n] = labels
-    end = n + n_children
-    w_out[n:end], m_out[n:end], p_out[n:end] = child_w, child_m, child_p
-    labels_out[n:end] = child_labels
+    # Measurement-driven birth joins the update's components before reduction, so that a
+    # newborn component on top of a known target merges into it and keeps its track's label.
+    w_new = born_weights_kernel(adaptive, birth_weight, explained, clutter, newborn)
     born_kernel(z, w_new, r_cov, velocity_var_m2_s2, w_out[end:], m_out[end:], p_out[end:],
                 labels_out[end:])
     detected = np.arange(rows) >= n

@@ -329,9 +329,7 @@ def _disk(
     moment = np.zeros((n, 2))
     second = np.zeros((n, 2, 2))
     a, b, d = cov
-    _disk_kernel(
-        means, a, b, d, disk.center_xy, disk.radius_m, order, _GL_X, _GL_W, mass, moment, second
-    )
+    disk_kernel(means, a, b, d, disk.center_xy, disk.radius_m, order, mass, moment, second)
     return mass, moment, second
 
 
@@ -342,7 +340,7 @@ def _ndtr(x: float) -> float:  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _disk_kernel(  # pragma: no cover - compiled; tested through _disk
+def disk_kernel(  # pragma: no cover - compiled; tested through _disk
     means: FloatArray,
     a: FloatArray,
     b: FloatArray,
@@ -350,13 +348,13 @@ def _disk_kernel(  # pragma: no cover - compiled; tested through _disk
     center: FloatArray,
     radius: float,
     order: int,
-    gl_x: FloatArray,
-    gl_w: FloatArray,
     mass: FloatArray,
     moment: FloatArray,
     second: FloatArray,
 ) -> None:
-    """Fill mass, moment and second (see _disk) component by component."""
+    """Fill mass, moment and second (see _disk) component by component, for the components'
+    position means (n, >= 2) and covariance entries a = P00, b = P01, d = P11 (n,)."""
+    gl_x, gl_w = _GL_X, _GL_W
     for i in range(means.shape[0]):
         ex = center[0] - means[i, 0]  # c - m
         ey = center[1] - means[i, 1]

@@ -23,7 +23,6 @@ later through the update's R. Times are handled relative to the prediction time 
 from __future__ import annotations
 
 import math
-from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -282,126 +281,240 @@ def gp_predict_rows(  # pragma: no cover - compiled; tested through predict_fit
     """mean = mu + k^T beta (Eq. gp_prediction), velocity = (dk/dt*)^T beta,
     var = sigma_f^2 - k^T Ky^-1 k, with k = K(t*, K) (Eq. gp_kernel), per row and time."""
     width, dim = beta.shape[1], beta.shape[2]
-    k = np.empty(width)
+    k = np.empty((times.shape[0], width))
     floor = _VAR_FLOOR_REL * sf2
-    for a in range(times.shape[0]):
-        for out in range(rows.shape[0]):
-            r = rows[out]
-            first = width - count[r]
+    for out in range(rows.shape[0]):
+        r = rows[out]
+        first = width - count[r]
+        for a in range(times.shape[0]):
             for w in range(width):
                 if w < first:
-                    k[w] = 0.0
+                    k[a, w] = 0.0
                 else:
                     scaled = (t_s[r, w] - times[a]) / lam
-                    k[w] = sf2 * math.exp(-0.5 * scaled * scaled)
+                    k[a, w] = sf2 * math.exp(-0.5 * scaled * scaled)
             for c in range(dim):
                 m = mu[r, c]
                 v = 0.0
                 for w in range(first, width):
-                    m += k[w] * beta[r, w, c]
-                    v += k[w] * (t_s[r, w] - times[a]) / (lam * lam) * beta[r, w, c]
+                    m += k[a, w] * beta[r, w, c]
+                    v += k[a, w] * (t_s[r, w] - times[a]) / (lam * lam) * beta[r, w, c]
                 mean[a, out, c] = m
                 velocity[a, out, c] = v
-            # quad = k^T Ky^-1 k = sum_w k[w] (row w of Ky^-1 . k), each row product summed in
-            # column order; four rows at a time, as independent sums that the CPU overlaps.
-            quad = 0.0
-            w = first
-            while w + 3 < width:
-                r0 = r1 = r2 = r3 = 0.0
-                for u in range(first, width):
-                    ku = k[u]
-                    r0 += ky_inv[r, w, u] * ku
-                    r1 += ky_inv[r, w + 1, u] * ku
-                    r2 += ky_inv[r, w + 2, u] * ku
-                    r3 += ky_inv[r, w + 3, u] * ku
-                quad += k[w] * r0
-                quad += k[w + 1] * r1
-                quad += k[w + 2] * r2
-                quad += k[w + 3] * r3
-                w += 4
-            while w < width:
-                row = 0.0
-                for u in range(first, width):
-                    row += ky_inv[r, w, u] * k[u]
-                quad += k[w] * row
+        for a in range(0, times.shape[0], 2):  # two times at a time, reading Ky^-1 once
+            b = min(a + 1, times.shape[0] - 1)
+            quad_a, quad_b = _quad_forms(ky_inv[r], k[a], k[b], first)
+            var[a, out] = max(sf2 - quad_a, floor)
+            var[b, out] = max(sf2 - quad_b, floor)
+
+
+@njit(cache=True, nogil=True)
+def _quad_forms(  # pragma: no cover - compiled; tested through predict_fit
+    ky_inv: FloatArray, k_a: FloatArray, k_b: FloatArray, first: int
+) -> tuple[float, float]:
+    """(k_a^T Ky^-1 k_a, k_b^T Ky^-1 k_b) over the columns from `first` on: sum_w k[w] (row w
+    of Ky^-1 . k), each row product summed in column order; four rows at a time, as
+    independent sums that the CPU overlaps."""
+    width = k_a.shape[0]
+    quad_a = quad_b = 0.0
+    w = first
+    while w + 3 < width:
+        a0 = a1 = a2 = a3 = b0 = b1 = b2 = b3 = 0.0
+        for u in range(first, width):
+            ka, kb = k_a[u], k_b[u]
+            c0, c1, c2, c3 = ky_inv[w, u], ky_inv[w + 1, u], ky_inv[w + 2, u], ky_inv[w + 3, u]
+            a0 += c0 * ka
+            a1 += c1 * ka
+            a2 += c2 * ka
+            a3 += c3 * ka
+            b0 += c0 * kb
+            b1 += c1 * kb
+            b2 += c2 * kb
+            b3 += c3 * kb
+        quad_a += k_a[w] * a0
+        quad_a += k_a[w + 1] * a1
+        quad_a += k_a[w + 2] * a2
+        quad_a += k_a[w + 3] * a3
+        quad_b += k_b[w] * b0
+        quad_b += k_b[w + 1] * b1
+        quad_b += k_b[w + 2] * b2
+        quad_b += k_b[w + 3] * b3
+        w += 4
+    while w < width:
+        row_a = row_b = 0.0
+        for u in range(first, width):
+            row_a += ky_inv[w, u] * k_a[u]
+            row_b += ky_inv[w, u] * k_b[u]
+        quad_a += k_a[w] * row_a
+        quad_b += k_b[w] * row_b
+        w += 1
+    return quad_a, quad_b
+
+
+@njit(cache=True, nogil=True)
+def _fit_kernel(  # pragma: no cover - compiled; tested through GpPredictor.fit
+    t_s: FloatArray,
+    y: FloatArray,
+    counts: IntArray,
+    rows: IntArray,
+    window: int,
+    sf2: float,
+    lam: float,
+    sn2: float,
+    keys: IntArray,
+    lengths: IntArray,
+    invs: FloatArray,
+    stamps: IntArray,
+    memo: IntArray,
+    mu: FloatArray,
+    beta: FloatArray,
+    ky_inv: FloatArray,
+) -> bool:
+    """Fit the windows `rows` of t_s (T, W) [s], y (T, W, d) [m] with counts[i] valid points
+    into those rows of mu (T, d), beta (T, W, d) and ky_inv (T, W, W), in place (see GpFit);
+    False if a Ky is not positive definite to working precision.
+
+    A row's last c = min(counts[i], window) times are taken as offsets from its newest point,
+    rounded to whole nanoseconds; Ky^-1 of those offsets comes from the memo (slot s: offsets
+    keys[s, :lengths[s]], Ky^-1 invs[s], last use stamps[s]; memo = (slots used, clock)) or from
+    _ky_inv_kernel, and then enters the memo in a free slot or the least recently used one
+    (none if the memo has no slots)."""
+    width = t_s.shape[1]
+    rel_q = np.empty(width)
+    rel_ns = np.empty(width, dtype=np.int64)
+    for k in range(rows.shape[0]):
+        i = rows[k]
+        c = min(counts[i], window)
+        first = width - c
+        for w in range(c):
+            ns = np.rint((t_s[i, first + w] - t_s[i, width - 1]) * _NS_PER_S)
+            rel_q[w] = ns / _NS_PER_S
+            rel_ns[w] = np.int64(ns)
+        ky_inv[i] = 0.0
+        block = ky_inv[i, first:, first:]
+        slot = -1
+        for s in range(memo[0]):
+            if lengths[s] != c:
+                continue
+            w = 0
+            while w < c and keys[s, w] == rel_ns[w]:
                 w += 1
-            var[a, out] = max(sf2 - quad, floor)
-
-
-@njit(cache=True, nogil=True)
-def _window_offsets(  # pragma: no cover - compiled; tested through GpPredictor.fit
-    t_s: FloatArray, count: IntArray, rel_q: FloatArray, rel_ns: IntArray
-) -> None:
-    """Each row's valid times as offsets from its newest point, rounded to whole nanoseconds
-    (seconds in rel_q, integer nanoseconds in rel_ns); 0 in the columns before its count."""
-    n_rows, width = t_s.shape
-    for i in range(n_rows):
-        first = width - count[i]
-        newest = t_s[i, width - 1]
-        for w in range(width):
-            ns = np.rint((t_s[i, w] - newest) * _NS_PER_S) if w >= first else 0.0
-            rel_q[i, w] = ns / _NS_PER_S
-            rel_ns[i, w] = np.int64(ns)
-
-
-@njit(cache=True, nogil=True)
-def _centred_weights(  # pragma: no cover - compiled; tested through GpPredictor.fit
-    y: FloatArray, count: IntArray, ky_inv: FloatArray, mu: FloatArray, beta: FloatArray
-) -> None:
-    """mu = the mean of each row's valid points, beta = Ky^-1 (y - mu) over them, 0 elsewhere
-    (see GpFit)."""
-    n_rows, width, dim = y.shape
-    for i in range(n_rows):
-        first = width - count[i]
-        for c in range(dim):
+            if w == c:
+                slot = s
+                break
+        if slot >= 0:
+            block[:, :] = invs[slot, :c, :c]
+        else:
+            if not _ky_inv_kernel(rel_q[:c], sf2, lam, sn2, block):
+                return False
+            if lengths.shape[0]:
+                if memo[0] < lengths.shape[0]:
+                    slot = memo[0]
+                    memo[0] += 1
+                else:
+                    slot = int(np.argmin(stamps))
+                keys[slot, :c] = rel_ns[:c]
+                lengths[slot] = c
+                invs[slot, :c, :c] = block
+        if slot >= 0:
+            memo[1] += 1
+            stamps[slot] = memo[1]
+        for d in range(y.shape[2]):
             total = 0.0
             for w in range(first, width):
-                total += y[i, w, c]
-            mu[i, c] = total / count[i]  # constant prior mean: the window's mean
+                total += y[i, w, d]
+            mu[i, d] = total / c  # constant prior mean: the window's mean
         for w in range(width):
-            for c in range(dim):
+            for d in range(y.shape[2]):
                 acc = 0.0
                 if w >= first:
                     for v in range(first, width):
-                        acc += ky_inv[i, w, v] * (y[i, v, c] - mu[i, c])
-                beta[i, w, c] = acc
+                        acc += ky_inv[i, w, v] * (y[i, v, d] - mu[i, d])
+                beta[i, w, d] = acc  # Ky^-1 (y - mu)
+    return True
 
 
 @njit(cache=True, nogil=True)
-def _half_sq_lags(  # pragma: no cover - compiled; tested through GpPredictor.fit
-    rel_q: FloatArray, lam: float
-) -> FloatArray:
-    """-0.5 ((t_i - t_j) / lambda)^2 for every pair of a window's times: the exponents of
-    Eq. gp_kernel (the exponential is numpy's, as everywhere in this module's numpy code)."""
+def _refit_kernel(  # pragma: no cover - compiled; tested through GpPredictor.refit
+    t_s: FloatArray,
+    y: FloatArray,
+    counts: IntArray,
+    eligible: npt.NDArray[np.bool_],
+    t_now: float,
+    window: int,
+    sf2: float,
+    lam: float,
+    sn2: float,
+    keys: IntArray,
+    lengths: IntArray,
+    invs: FloatArray,
+    stamps: IntArray,
+    memo: IntArray,
+    mu: FloatArray,
+    beta: FloatArray,
+    ky_inv: FloatArray,
+) -> tuple[int, FloatArray, FloatArray, FloatArray]:
+    """(1, copies of mu, beta, ky_inv with the changed rows refitted), (0, the arrays given)
+    when no row changed, or (-1, ...) when a Ky is not positive definite; a row changed when it
+    is eligible and its newest point (it has one) is at t_now. See _fit_kernel."""
+    changed = np.zeros(counts.shape[0], dtype=np.bool_)
+    for i in range(counts.shape[0]):
+        changed[i] = eligible[i] and counts[i] > 0 and t_s[i, t_s.shape[1] - 1] == t_now
+    rows = np.flatnonzero(changed)
+    if rows.shape[0] == 0:
+        return 0, mu, beta, ky_inv
+    mu, beta, ky_inv = mu.copy(), beta.copy(), ky_inv.copy()
+    ok = _fit_kernel(t_s, y, counts, rows, window, sf2, lam, sn2, keys, lengths, invs, stamps,
+                     memo, mu, beta, ky_inv)
+    return 1 if ok else -1, mu, beta, ky_inv
+
+
+@njit(cache=True, nogil=True)
+def _ky_inv_kernel(  # pragma: no cover - compiled; tested through GpPredictor.fit
+    rel_q: FloatArray, sf2: float, lam: float, sn2: float, out: FloatArray
+) -> bool:
+    """out <- Ky^-1 = (K(K, K) + sigma_n^2 I)^-1 (Eq. gp_kernel) for one window's times, by
+    Cholesky, Ky = L L^T, and Ky^-1 = L^-T L^-1, symmetric by construction; False (out
+    unfinished) when Ky is not positive definite to working precision."""
     n = rel_q.shape[0]
-    out = np.empty((n, n))
+    low = np.empty((n, n))  # K(K, K) + sigma_n^2 I, lower triangle, then L in place
     for i in range(n):
-        for j in range(n):
+        for j in range(i + 1):
             diff = (rel_q[i] - rel_q[j]) / lam
-            out[i, j] = -0.5 * diff * diff
-    return out
+            low[i, j] = sf2 * math.exp(-0.5 * diff * diff)  # Eq. gp_kernel
+        low[i, i] += sn2
+    for j in range(n):
+        for i in range(j, n):
+            total = low[i, j]
+            for k in range(j):
+                total -= low[i, k] * low[j, k]
+            if i == j:
+                if not total > 0.0:
+                    return False
+                low[j, j] = math.sqrt(total)
+            else:
+                low[i, j] = total / low[j, j]
+    upper = np.zeros((n, n))  # (L^-1)^T, row by row: U[j, i] = (L^-1)[i, j]
+    for j in range(n):
+        upper[j, j] = 1.0 / low[j, j]
+        for i in range(j + 1, n):
+            total = 0.0
+            for k in range(j, i):
+                total -= low[i, k] * upper[j, k]
+            upper[j, i] = total / low[i, i]
+    for a in range(n):  # Ky^-1 = L^-T L^-1: (a, b) = sum_k U[a, k] U[b, k]
+        for b in range(a + 1):
+            total = 0.0
+            for k in range(a, n):
+                total += upper[a, k] * upper[b, k]
+            out[a, b] = out[b, a] = total
+    return True
 
 
-@njit(cache=True, nogil=True)
-def _scale_add_diagonal(  # pragma: no cover - compiled; tested through GpPredictor.fit
-    ky: FloatArray, sf2: float, sn2: float
-) -> None:
-    """ky <- sf2 ky + sn2 I in place: K(K, K) + sigma_n^2 I from the exponentials (Eq.
-    gp_kernel)."""
-    n = ky.shape[0]
-    for i in range(n):
-        for j in range(n):
-            ky[i, j] = sf2 * ky[i, j]
-        ky[i, i] += sn2
-
-
-@njit(cache=True, nogil=True)
-def _symmetrise(a: FloatArray) -> None:  # pragma: no cover - compiled; tested through fit
-    """a <- (a + a^T) / 2 in place: the inverse's round-off asymmetry removed."""
-    n = a.shape[0]
-    for i in range(n):
-        for j in range(i + 1, n):
-            a[i, j] = a[j, i] = 0.5 * (a[i, j] + a[j, i])
+_SINGULAR = (
+    "GP covariance K + sigma_n^2 I is numerically singular: sigma_n is too small relative to "
+    "sigma_f for these times"
+)
 
 
 class GpPredictor:
@@ -420,7 +533,31 @@ class GpPredictor:
             raise InputError(f"GP cache size must be >= 0, got {cache_size!r}")
         self._params = params
         self._cache_size = int(cache_size)
-        self._cache: OrderedDict[bytes, FloatArray] = OrderedDict()
+        # The memo as arrays for _fit_kernel, grown as it fills up to cache_size slots.
+        self._keys = np.zeros((0, params.window), dtype=np.int64)
+        self._lengths = np.zeros(0, dtype=np.int64)
+        self._invs = np.zeros((0, params.window, params.window))
+        self._stamps = np.zeros(0, dtype=np.int64)
+        self._memo = np.zeros(2, dtype=np.int64)
+
+    @property
+    def cache_entries(self) -> int:
+        """The number of windows' Ky^-1 memoised."""
+        return int(self._memo[0])
+
+    def _reserve(self, rows: int) -> None:
+        """Slots for `rows` more windows in the memo, up to cache_size (beyond, the least
+        recently used make room)."""
+        need = min(self._cache_size, int(self._memo[0]) + rows)
+        slots = self._lengths.shape[0]
+        if need <= slots:
+            return
+        slots = min(self._cache_size, max(need, 2 * slots, 16))
+        for name in ("_keys", "_lengths", "_invs", "_stamps"):
+            old = getattr(self, name)
+            grown = np.zeros((slots, *old.shape[1:]), dtype=old.dtype)
+            grown[: old.shape[0]] = old
+            setattr(self, name, grown)
 
     @property
     def params(self) -> GpParams:
@@ -468,19 +605,39 @@ class GpPredictor:
     def _fit(self, t_arr: FloatArray, y_arr: FloatArray, c_arr: IntArray) -> GpFit:
         """fit() after its checks."""
         n_rows, width = t_arr.shape
-        count = np.minimum(c_arr, self._params.window).astype(np.int64)
         t_w = np.ascontiguousarray(t_arr, dtype=np.float64)
-        rel_q = np.empty((n_rows, width))
-        rel_ns = np.empty((n_rows, width), dtype=np.int64)
-        _window_offsets(t_w, count, rel_q, rel_ns)
-        ky_inv = np.zeros((n_rows, width, width))
-        for i in range(n_rows):
-            first = width - int(count[i])
-            ky_inv[i, first:, first:] = self._ky_inv(rel_q[i, first:], rel_ns[i, first:])
         mu = np.empty((n_rows, y_arr.shape[2]))
         beta = np.empty(y_arr.shape)
-        _centred_weights(np.ascontiguousarray(y_arr, dtype=np.float64), count, ky_inv, mu, beta)
+        ky_inv = np.zeros((n_rows, width, width))
+        self._reserve(n_rows)
+        params = self._params
+        if not _fit_kernel(
+            t_w, np.ascontiguousarray(y_arr, dtype=np.float64), c_arr, np.arange(n_rows),
+            params.window, params.sigma_f_m**2, params.lengthscale_s, params.sigma_n_m**2,
+            self._keys, self._lengths, self._invs, self._stamps, self._memo, mu, beta, ky_inv,
+        ):
+            raise InputError(_SINGULAR)
+        count = np.minimum(c_arr, params.window).astype(np.int64)
         return GpFit(t_w.copy() if t_w is t_arr else t_w, count, mu, beta, ky_inv)
+
+    def refit(
+        self, t_s: FloatArray, y: FloatArray, counts: IntArray, eligible: npt.NDArray[np.bool_],
+        t_now_s: float, fit: GpFit,
+    ) -> GpFit:
+        """The fit of T windows t_s (T, W) [s], y (T, W, d) [m] with counts[i] valid points
+        (float64, unchecked: windows the tracker built itself) given their previous `fit`: the
+        rows that are `eligible` and whose newest point is at t_now_s refitted in copies of
+        fit's arrays, the others shared; `fit` itself when there is no such row."""
+        self._reserve(counts.shape[0])
+        params = self._params
+        status, mu, beta, ky_inv = _refit_kernel(
+            t_s, y, counts, eligible, t_now_s, params.window, params.sigma_f_m**2,
+            params.lengthscale_s, params.sigma_n_m**2, self._keys, self._lengths, self._invs,
+            self._stamps, self._memo, fit.mu, fit.beta, fit.ky_inv,
+        )
+        if status < 0:
+            raise InputError(_SINGULAR)
+        return fit if status == 0 else GpFit(t_s, counts, mu, beta, ky_inv)
 
     def predict(
         self, t_s: npt.ArrayLike, y: npt.ArrayLike, counts: npt.ArrayLike, t_star_s: float
@@ -496,31 +653,6 @@ class GpPredictor:
         if fit.count.size:
             _check_rel(fit.t_s[:, -1:] - t_star)
         return predict_fit(self._params, fit, t_star)
-
-    def _ky_inv(self, rel_q: FloatArray, rel_ns: IntArray) -> FloatArray:
-        """(K(K, K) + sigma_n^2 I)^-1 for one window's offsets, from the cache if it has them."""
-        key = rel_ns.tobytes()
-        hit = self._cache.get(key)
-        if hit is not None:
-            self._cache.move_to_end(key)
-            return hit
-        params = self._params
-        ky = np.exp(_half_sq_lags(rel_q, params.lengthscale_s))
-        _scale_add_diagonal(ky, params.sigma_f_m**2, params.sigma_n_m**2)  # Eq. gp_kernel
-        try:
-            inv = np.asarray(np.linalg.inv(ky), dtype=np.float64)
-        except np.linalg.LinAlgError as exc:
-            raise InputError(
-                "GP covariance K + sigma_n^2 I is numerically singular: sigma_n is too small "
-                "relative to sigma_f for these times"
-            ) from exc
-        _symmetrise(inv)
-        inv.setflags(write=False)
-        if self._cache_size > 0:
-            self._cache[key] = inv
-            if len(self._cache) > self._cache_size:
-                self._cache.popitem(last=False)
-        return inv
 
 
 # ---------------------------------------------------------------------------------------------

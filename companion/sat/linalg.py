@@ -48,15 +48,22 @@ def spd_2x2_faults(covs: FloatArray) -> tuple[BoolArray, BoolArray]:
 
 
 def _spd_2x2_faults_one(cov: FloatArray) -> tuple[BoolArray, BoolArray]:
-    """spd_2x2_faults of a single 2x2, without numpy's per-call overhead (same IEEE results:
-    Python floats round, overflow to inf and underflow to 0 as float64 arrays do)."""
+    """spd_2x2_faults of a single 2x2."""
     (p00, p01), (p10, p11) = cov.tolist()
+    asymmetric, indefinite = spd_2x2_faults_of(p00, p01, p10, p11)
+    return np.asarray(asymmetric), np.asarray(indefinite)
+
+
+def spd_2x2_faults_of(p00: float, p01: float, p10: float, p11: float) -> tuple[bool, bool]:
+    """spd_2x2_faults of one 2x2 given by its entries, without numpy's per-call overhead (same
+    IEEE results: Python floats round, overflow to inf and underflow to 0 as float64 arrays
+    do)."""
     scale = math.nan if math.isnan(p00) or math.isnan(p11) else max(abs(p00), abs(p11))
     asymmetric = abs(p01 - p10) > SYMMETRY_RTOL * scale  # np.maximum propagates NaN, max not
     if p01 != p10:
         p01 = 0.5 * (p01 + p10)
     definite = p00 > 0.0 and p01 * p01 < (1.0 - CORRELATION_TOL) * (p00 * p11)
-    return np.asarray(asymmetric), np.asarray(not definite)
+    return asymmetric, not definite
 
 
 def inv_stack(a: FloatArray) -> FloatArray:

@@ -46,7 +46,7 @@ from companion.sat.linalg import inv_det_2x2
 from companion.sat.mixture import Mixture
 from companion.sat.motion import TargetMotion, iou_variance_m2
 from companion.sat.reduce import _moment_match, merge, prune
-from companion.sat.tracks import TrackParams, Tracks, _concat, _new_tracks, pushed_windows
+from companion.sat.tracks import TrackParams, Tracks, _with_new_tracks, pushed_windows
 from companion.sat.update import PushMode, detection, no_detection, visibility
 
 if TYPE_CHECKING:
@@ -83,10 +83,10 @@ def bernoullis(mixture: Mixture, t_s: float, params: SatParams) -> tuple[Mixture
     if prior.size == 0:
         return prior, tracks
     rows = np.arange(prior.size)
-    born = _new_tracks(tracks, rows, np.zeros(prior.size, dtype=bool), prior, t_s,
-                       params.tracks, existence=r)
+    born = _with_new_tracks(tracks, rows, np.zeros(prior.size, dtype=bool), prior, t_s,
+                            params.tracks, existence=r)
     labelled = Mixture(r, prior.means, prior.covs, born.ids)
-    return labelled, _concat(tracks, born)
+    return labelled, born
 
 
 def grow_unseen(
@@ -383,10 +383,10 @@ def _maintain(
         survivors.ids, t_s, survivors.means, survivors.covs))
     if born.size:
         rows = np.arange(born.size)
-        new = _new_tracks(survivors, rows, np.ones(born.size, dtype=bool), born, t_s, tp,
-                          existence=born.weights)
-        mix = Mixture.concat([mix, replace(born, labels=new.ids)])
-        survivors = _concat(survivors, new)
+        n_old = survivors.size
+        survivors = _with_new_tracks(survivors, rows, np.ones(born.size, dtype=bool), born,
+                                     t_s, tp, existence=born.weights)
+        mix = Mixture.concat([mix, replace(born, labels=survivors.ids[n_old:])])
     survivors = replace(survivors, alone=np.ones(survivors.size, dtype=bool))
     extracted = int(np.count_nonzero(survivors.existence > params.extract_weight))
     return mix, survivors, extracted

@@ -56,56 +56,102 @@ def _transition(
     return f, q
 
 
-def predict_linear(mix: Mixture, f: FloatArray, q: FloatArray, p_survive: float) -> Mixture:
-    """w = p_S w, m = F m, P = F P F^T + Q for every component (Vo & Ma Table 1, step 2)."""
-    if mix.size == 0:
-        return mix
-    if f.shape == (2, 2):  # constant position: F = I, the mean does not move
-        means = mix.means
-        covs = mix.covs + q
-    else:
-        means = mix.means @ f.T
-        covs = np.einsum("ij,njk,lk->nil", f, mix.covs, f) + q
-        # F P F^T moves position variance into the position-velocity correlation: with little
-        # process noise, a long step (or a nearly singular P) leaves a matrix whose correlation
-        # is within round-off of 1, singular to working precision (Cholesky and inversion in
-        # merging fail). Raising every variance by _VAR_FLOOR_REL of itself keeps the smallest
-        # eigenvalue of the correlation matrix above ~1e-12 and changes nothing measurable.
-        diag = np.arange(f.shape[0])
-        covs[:, diag, diag] *= 1.0 + _VAR_FLOOR_REL
-    weights = mix.weights if p_survive == 1.0 else p_survive * mix.weights  # 1 w = w exactly
-    return Mixture(weights, means, covs, mix.labels)
-
-
-def apply_gp(
-    predicted: Mixture,
+def predict(
     prior: Mixture,
-    track_ids: NDArray[np.int64],
-    confirmed: NDArray[np.bool_],
-    fit: GpFit,
-    params: GpParams,
-    t_before_s: float,
-    t_now_s: float,
+    f: FloatArray,
+    q: FloatArray,
+    p_survive: float,
+    gp: GpParams,
+    fit: GpFit | None = None,
+    track_ids: NDArray[np.int64] | None = None,
+    confirmed: NDArray[np.bool_] | None = None,
+    t_before_s: float = 0.0,
+    t_now_s: float = 0.0,
     incremental: bool = False,
 ) -> Mixture:
-    """Predict the components of confirmed tracks by their GP regression, not the linear model.
+    """w = p_S w, m = F m, P = F P F^T + Q for every component (Vo & Ma Table 1, step 2); with a
+    GP fit of the tracks' windows, the components of confirmed tracks by their GP instead.
 
-    A component labelled with a confirmed track whose window holds at least two detections
-    takes the GP mean at t_now_s (Eq. gp_prediction), and its prior position covariance grows
-    by the increase of the GP's predictive variance from t_before_s to t_now_s, in place of the
-    linear model's Q. In a constant-velocity state the derivative of the GP mean becomes the
-    velocity mean and the velocity block keeps its linear prediction. `track_ids` are sorted.
+    A component labelled with a confirmed track (`track_ids` sorted, `confirmed`) whose window
+    holds at least two detections takes the GP mean at t_now_s (Eq. gp_prediction), and its
+    prior position covariance grows by the increase of the GP's predictive variance from
+    t_before_s to t_now_s, in place of the linear model's Q; `incremental` moves its prior mean
+    by the GP mean's change instead. In a constant-velocity state the derivative of the GP mean
+    becomes the velocity mean and the velocity block keeps its linear prediction.
     """
-    if predicted.size == 0 or track_ids.size == 0:
-        return predicted
-    means = predicted.means.copy()
-    covs = predicted.covs.copy()
-    _apply_gp_kernel(
-        prior.labels, prior.means, prior.covs, track_ids, confirmed, fit.t_s, fit.count, fit.mu,
-        fit.beta, fit.ky_inv, params.sigma_f_m**2, params.lengthscale_s, t_before_s, t_now_s,
-        incremental, means, covs,
+    if fit is None or track_ids is None or confirmed is None:
+        fit, track_ids, confirmed = _NO_FIT, _NO_TRACKS, _NO_CONFIRMED
+    weights, means, covs = _predict_kernel(
+        prior.weights, prior.means, prior.covs, prior.labels, f, q, p_survive, track_ids,
+        confirmed, fit.t_s, fit.count, fit.mu, fit.beta, fit.ky_inv, gp.sigma_f_m**2,
+        gp.lengthscale_s, t_before_s, t_now_s, incremental,
     )
-    return Mixture(predicted.weights, means, covs, predicted.labels)
+    return Mixture(weights, means, covs, prior.labels)
+
+
+_NO_FIT = GpFit.empty(1)
+_NO_TRACKS, _NO_CONFIRMED = np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.bool_)
+"""No GP windows: predict moves every component by the linear model."""
+
+
+@njit(cache=True, nogil=True)
+def _predict_kernel(  # pragma: no cover - compiled; tested through predict
+    weights: FloatArray,
+    means: FloatArray,
+    covs: FloatArray,
+    labels: NDArray[np.int64],
+    f: FloatArray,
+    q: FloatArray,
+    p_survive: float,
+    track_ids: NDArray[np.int64],
+    confirmed: NDArray[np.bool_],
+    t_s: FloatArray,
+    count: NDArray[np.int64],
+    mu: FloatArray,
+    beta: FloatArray,
+    ky_inv: FloatArray,
+    sf2: float,
+    lam: float,
+    t_before: float,
+    t_now: float,
+    incremental: bool,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The predicted (weights, means, covs), see predict."""
+    n, d = means.shape
+    m_out, p_out = np.empty((n, d)), np.empty((n, d, d))
+    if d == 2:  # constant position: F = I, the mean does not move
+        m_out[:] = means
+        for i in range(n):
+            for a in range(2):
+                for b in range(2):
+                    p_out[i, a, b] = covs[i, a, b] + q[a, b]
+    else:
+        for i in range(n):
+            for a in range(d):
+                total = 0.0
+                for b in range(d):
+                    total += f[a, b] * means[i, b]
+                m_out[i, a] = total
+            for a in range(d):  # F P F^T + Q, summed as numpy's einsum does
+                for b in range(d):
+                    total = 0.0
+                    for j in range(d):
+                        for k in range(d):
+                            total += f[a, j] * covs[i, j, k] * f[b, k]
+                    p_out[i, a, b] = total + q[a, b]
+            # F P F^T moves position variance into the position-velocity correlation: with
+            # little process noise, a long step (or a nearly singular P) leaves a matrix whose
+            # correlation is within round-off of 1, singular to working precision (Cholesky and
+            # inversion in merging fail). Raising every variance by _VAR_FLOOR_REL of itself
+            # keeps the smallest eigenvalue of the correlation matrix above ~1e-12 and changes
+            # nothing measurable.
+            for a in range(d):
+                p_out[i, a, a] *= 1.0 + _VAR_FLOOR_REL
+    if track_ids.shape[0]:
+        _apply_gp_kernel(labels, means, covs, track_ids, confirmed, t_s, count, mu, beta,
+                         ky_inv, sf2, lam, t_before, t_now, incremental, m_out, p_out)
+    w_out = weights if p_survive == 1.0 else p_survive * weights  # 1 w = w exactly
+    return w_out, m_out, p_out
 
 
 @njit(cache=True, nogil=True)

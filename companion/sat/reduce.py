@@ -207,24 +207,31 @@ def _greedy_groups(  # pragma: no cover - compiled; tested through merge
         for i in range(n):
             if leader_of[i] >= 0:
                 continue
-            for k in range(dim):
-                diff[k] = means[i, k] - means[j, k]
             both_tracks = labels[i] != NO_LABEL and labels[j] != NO_LABEL
             if both_tracks and labels[i] != labels[j]:
                 # Two tracks' components: one target only when both were just detected and
                 # agree within their joint uncertainty.
                 if not (label_rule and observed[i] and observed[j]):
                     continue
+                for k in range(dim):
+                    diff[k] = means[i, k] - means[j, k]
                 summed[:, :] = covs[i] + covs[j]
                 unresolved = _quad(diff[:2], resolution_inv) <= 1.0
                 if unresolved or float(diff @ np.linalg.solve(summed, diff)) <= threshold:
                     leader_of[i] = j
                 continue
-            if _quad(diff, inv[i]) > threshold:  # Vo & Ma: the candidate's covariance
-                continue
-            if symmetric and _quad(diff, inv[j]) > threshold:
-                continue
-            leader_of[i] = j
+            # Vo & Ma: within U under the candidate's covariance (and the leader's, symmetric).
+            if dim == 2:  # the same sums as _quad, on scalars
+                d0, d1 = means[i, 0] - means[j, 0], means[i, 1] - means[j, 1]
+                far = _quad_2(inv[i], d0, d1) > threshold or (
+                    symmetric and _quad_2(inv[j], d0, d1) > threshold)
+            else:
+                for k in range(dim):
+                    diff[k] = means[i, k] - means[j, k]
+                far = _quad(diff, inv[i]) > threshold or (
+                    symmetric and _quad(diff, inv[j]) > threshold)
+            if not far:
+                leader_of[i] = j
     group_index = np.full(n, -1, dtype=np.int64)
     n_groups = 0
     for j in order:  # leaders in greedy (heaviest-first) order, up to max_groups
@@ -247,6 +254,12 @@ def _quad(x: FloatArray, a: FloatArray) -> float:  # pragma: no cover - compiled
             row += a[r, c] * x[c]
         total += x[r] * row
     return total
+
+
+@njit(cache=True, nogil=True)
+def _quad_2(a: FloatArray, x0: float, x1: float) -> float:  # pragma: no cover - compiled
+    """x^T A x for a 2-vector (x0, x1), summed as _quad sums it."""
+    return float(x0 * (a[0, 0] * x0 + a[0, 1] * x1) + x1 * (a[1, 0] * x0 + a[1, 1] * x1))
 
 
 def _moment_match(mix: Mixture, group_of: IntArray, n_groups: int) -> Mixture:

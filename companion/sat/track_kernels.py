@@ -2,19 +2,21 @@
 scoring, GP windows and survival.
 
 Each step's track maintenance works on a few rows; as numpy calls its time went to call
-overhead, so the per-row logic of a step's common path is written out here once, in three
-kernels (support_of, support, survivors). Every kernel states the rule it computes;
-companion.sat.tracks documents what the rules mean.
+overhead, so the per-row logic of a step's common path is written out here once, in a few
+kernels (support_of, support with survivors, append_tracks). Every kernel states the rule it
+computes; companion.sat.tracks documents what the rules mean.
 """
 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from companion.sat.fov import disk_kernel
 from companion.sat.mixture import NO_LABEL
 
 FloatArray = NDArray[np.float64]
@@ -196,68 +198,125 @@ def push_windows(
 def support(
     means: FloatArray, covs: FloatArray, hits: IntArray, life: IntArray, last_t_s: FloatArray,
     seen_t_s: FloatArray, alone: BoolArray, score: FloatArray, confirmed: BoolArray,
-    win_t_s: FloatArray, win_xy: FloatArray, win_count: IntArray,
-    supported_by: IntArray, hit: BoolArray, p_in: FloatArray, mix_means: FloatArray,
-    mix_covs: FloatArray, t_s: float, scored: bool, r_cov: FloatArray, p_detect: float,
-    clutter_per_m2: float, gate_sq: float, max_score: float, window: int, confirm_length: int,
-    confirm_score: float,
+    win_t_s: FloatArray, win_xy: FloatArray, win_count: IntArray, track_ids: IntArray,
+    supported_by: IntArray, hit: BoolArray, coasting: BoolArray, p_in: FloatArray,
+    center_xy: FloatArray, radius_m: float, mix_means: FloatArray, mix_covs: FloatArray,
+    t_s: float, scored: bool, r_cov: FloatArray, p_detect: float, clutter_per_m2: float,
+    gate_sq: float, max_score: float, window: int, confirm_length: int, confirm_score: float,
+    log_ids: IntArray, log_t_s: FloatArray, log_means: FloatArray, log_covs: FloatArray,
+    log_start: int, timeout_s: float, drop_existence: float,
 ) -> tuple[FloatArray, FloatArray, IntArray, IntArray, FloatArray, FloatArray, BoolArray,
-           FloatArray, BoolArray, FloatArray, FloatArray, IntArray]:
+           FloatArray, BoolArray, FloatArray, FloatArray, IntArray, BoolArray, IntArray, int,
+           int, bool]:
     """New (means, covs, hits, life, last_t_s, seen_t_s, alone, score, confirmed, win_t_s,
-    win_xy, win_count) after this step's support.
+    win_xy, win_count) after this step's support, then, unless a row is coasting (its state
+    changes first), `survivors` on them: (alive, labels, number alive, number newly confirmed,
+    True); else (-, -, 0, 0, False).
 
-    Each row with supported_by[row] >= 0 takes that component's moments and time t_s; a row
-    with hit also counts a detection and pushes the component's position onto its GP window.
-    When `scored` (a frame was processed), a supported row's score gains _score_delta (p_in: its
-    component's p(F), read for misses), capped at max_score. A row with confirm_length hits and
-    a score of at least confirm_score becomes confirmed.
+    Each row with supported_by[row] >= 0 takes that component's moments and time t_s, and
+    writes them to the log's buffers from row log_start on (in row order); a row with hit also
+    counts a detection and pushes the component's position onto its GP window. When `scored`
+    (a frame was processed), a supported row's score gains _score_delta, capped at max_score;
+    a miss reads its component's p(F): computed here in a disk (radius_m > 0, centre
+    center_xy), else given in p_in (T,). A row with confirm_length hits and a score of at least
+    confirm_score becomes confirmed.
     """
-    means, covs, hits, life = means.copy(), covs.copy(), hits.copy(), life.copy()
-    last_t_s, seen_t_s, alone = last_t_s.copy(), seen_t_s.copy(), alone.copy()
-    score, confirmed = score.copy(), confirmed.copy()
-    win_t_s, win_xy, win_count = win_t_s.copy(), win_xy.copy(), win_count.copy()
+    new_means, new_covs, new_hits, new_life = means.copy(), covs.copy(), hits.copy(), life.copy()
+    new_last_t, new_seen_t, new_alone = last_t_s.copy(), seen_t_s.copy(), alone.copy()
+    new_score, new_confirmed = score.copy(), confirmed.copy()
+    new_win_t, new_win_xy, new_win_count = win_t_s.copy(), win_xy.copy(), win_count.copy()
+    mass, moment, second = np.empty(1), np.zeros((1, 2)), np.zeros((1, 2, 2))
+    n_logged = 0
     for row in range(supported_by.shape[0]):
         comp = supported_by[row]
         if hit[row]:
-            hits[row] += 1
-            seen_t_s[row] = t_s
+            new_hits[row] += 1
+            new_seen_t[row] = t_s
         if comp >= 0:
-            means[row] = mix_means[comp]
-            covs[row] = mix_covs[comp]
-            life[row] += 1
-            last_t_s[row] = t_s
-            alone[row] = False
+            new_means[row] = mix_means[comp]
+            new_covs[row] = mix_covs[comp]
+            new_life[row] += 1
+            new_last_t[row] = t_s
+            new_alone[row] = False
             if scored:  # Eqs. track_score_hit, track_score_miss
-                total = score[row] + _score_delta(
-                    mix_covs[comp], p_in[row], hit[row], r_cov, p_detect, clutter_per_m2, gate_sq
+                p_f = 0.0
+                if hit[row]:
+                    pass
+                elif radius_m > 0.0:
+                    disk_kernel(mix_means[comp:comp + 1], mix_covs[comp:comp + 1, 0, 0],
+                                mix_covs[comp:comp + 1, 0, 1], mix_covs[comp:comp + 1, 1, 1],
+                                center_xy, radius_m, 0, mass, moment, second)
+                    p_f = mass[0]
+                else:
+                    p_f = p_in[row]
+                total = new_score[row] + _score_delta(
+                    mix_covs[comp], p_f, hit[row], r_cov, p_detect, clutter_per_m2, gate_sq
                 )
-                score[row] = max_score if total > max_score else total
+                new_score[row] = max_score if total > max_score else total
             if hit[row]:  # the GP window holds detected positions only
-                push_window(win_t_s, win_xy, win_count, row, t_s, mix_means[comp], window)
-        if hits[row] >= confirm_length and score[row] >= confirm_score:
-            confirmed[row] = True
-    return (means, covs, hits, life, last_t_s, seen_t_s, alone, score, confirmed, win_t_s,
-            win_xy, win_count)
+                push_window(new_win_t, new_win_xy, new_win_count, row, t_s, mix_means[comp],
+                            window)
+            at = log_start + n_logged
+            log_ids[at], log_t_s[at] = track_ids[row], t_s
+            log_means[at], log_covs[at] = new_means[row], new_covs[row]
+            n_logged += 1
+        if new_hits[row] >= confirm_length and new_score[row] >= confirm_score:
+            new_confirmed[row] = True
+    decided = not coasting.any()
+    if decided:
+        alive, labels, n_alive, n_new = survivors(
+            supported_by, coasting, confirmed, last_t_s, new_score, _NO_AREA, new_confirmed,
+            track_ids, mix_means.shape[0], t_s, timeout_s, drop_existence,
+        )
+    else:
+        alive, labels = np.zeros(0, dtype=np.bool_), np.zeros(0, dtype=np.int64)
+        n_alive = n_new = 0
+    return (new_means, new_covs, new_hits, new_life, new_last_t, new_seen_t, new_alone,
+            new_score, new_confirmed, new_win_t, new_win_xy, new_win_count, alive, labels,
+            n_alive, n_new, decided)
+
+
+_NO_AREA = np.zeros(0)
+"""in_area for survivors when no row is coasting."""
+
+
+@njit(cache=True, nogil=True)
+def existence(score: float) -> float:  # pragma: no cover - compiled
+    """The probability that a track's target exists, from its log-likelihood ratio."""
+    return 1.0 / (1.0 + math.exp(-score))
+
+
+@njit(cache=True, nogil=True)
+def existences(score: FloatArray) -> FloatArray:  # pragma: no cover - compiled
+    """existence of each score."""
+    out = np.empty(score.shape[0])
+    for row in range(score.shape[0]):
+        out[row] = existence(score[row])
+    return out
 
 
 @njit(cache=True, nogil=True)
 def survivors(
     supported_by: IntArray, coasting: BoolArray, confirmed: BoolArray, last_t_s: FloatArray,
-    existence: FloatArray, confirmed_now: BoolArray, track_ids: IntArray, n_components: int,
-    t_s: float, timeout_s: float, drop_existence: float,
+    score: FloatArray, in_area: FloatArray, confirmed_now: BoolArray, track_ids: IntArray,
+    n_components: int, t_s: float, timeout_s: float, drop_existence: float,
 ) -> tuple[BoolArray, IntArray, int, int]:
     """(alive (T,), labels (n_components,), number alive, number of the alive confirmed this
     step). A track lives on when it is supported, coasting, or confirmed and supported within
-    timeout_s (confirmed, last_t_s: before this step), and its existence is at least
-    drop_existence; each component supporting a live track is labelled with its id, the others
-    with NO_LABEL."""
+    timeout_s (confirmed, last_t_s: before this step), and its existence (existence(score),
+    times in_area for a coasting row when in_area (T,) is given) is at least drop_existence;
+    each component supporting a live track is labelled with its id, the others with
+    NO_LABEL."""
     alive = np.empty(supported_by.shape[0], dtype=np.bool_)
     labels = np.full(n_components, NO_LABEL, dtype=np.int64)
     n_alive = n_new = 0
     for row in range(supported_by.shape[0]):
         kept = supported_by[row] >= 0 or coasting[row] or (
             confirmed[row] and t_s - last_t_s[row] <= timeout_s)
-        alive[row] = kept and existence[row] >= drop_existence
+        exists = existence(score[row])
+        if in_area.shape[0] and coasting[row]:
+            exists *= in_area[row]
+        alive[row] = kept and exists >= drop_existence
         if not alive[row]:
             continue
         n_alive += 1
@@ -268,14 +327,56 @@ def survivors(
 
 
 @njit(cache=True, nogil=True)
-def fresh_windows(
-    confirmed: BoolArray, win_count: IntArray, win_t_s: FloatArray, t_s: float
-) -> IntArray:
-    """The confirmed rows whose GP window gained a detection at t_s (its newest entry)."""
-    fresh = np.zeros(confirmed.shape[0], dtype=np.bool_)
-    for row in range(confirmed.shape[0]):
-        fresh[row] = confirmed[row] and win_count[row] > 0 and win_t_s[row, -1] == t_s
-    return np.flatnonzero(fresh)
+def append_tracks(
+    ids: IntArray, hits: IntArray, life: IntArray, confirmed: BoolArray, born_t_s: FloatArray,
+    last_t_s: FloatArray, seen_t_s: FloatArray, score: FloatArray, alone: BoolArray,
+    means: FloatArray, covs: FloatArray, win_t_s: FloatArray, win_xy: FloatArray,
+    win_count: IntArray, gp_mu: FloatArray, gp_beta: FloatArray, gp_ky_inv: FloatArray,
+    comp: IntArray, hit: BoolArray, mix_means: FloatArray, mix_covs: FloatArray,
+    new_score: FloatArray, t_s: float, next_id: int, confirm_length: int,
+    confirm_score: float, log_ids: IntArray, log_t_s: FloatArray, log_means: FloatArray,
+    log_covs: FloatArray, log_start: int,
+) -> tuple[IntArray, IntArray, IntArray, BoolArray, FloatArray, FloatArray, FloatArray,
+           FloatArray, BoolArray, FloatArray, FloatArray, FloatArray, FloatArray, IntArray,
+           FloatArray, FloatArray, FloatArray]:
+    """The track rows (in Tracks' field order) followed by one new track per component row
+    comp[k]: id next_id + k, born, supported and seen at t_s, that component's moments, score
+    new_score[k], one hit and one detection in its GP window if hit[k], confirmed with
+    confirm_length hits and a score of at least confirm_score, no GP fit yet. Their first rows
+    go to the log's buffers from row log_start on."""
+    n = ids.shape[0] + comp.shape[0]
+    ids, hits, life = _extended(ids, n), _extended(hits, n), _extended(life, n)
+    confirmed, born_t_s = _extended(confirmed, n), _extended(born_t_s, n)
+    last_t_s, seen_t_s = _extended(last_t_s, n), _extended(seen_t_s, n)
+    score, alone = _extended(score, n), _extended(alone, n)
+    means, covs = _extended(means, n), _extended(covs, n)
+    win_t_s, win_xy = _extended(win_t_s, n), _extended(win_xy, n)
+    win_count, gp_mu = _extended(win_count, n), _extended(gp_mu, n)
+    gp_beta, gp_ky_inv = _extended(gp_beta, n), _extended(gp_ky_inv, n)
+    last = win_t_s.shape[1] - 1
+    for k in range(comp.shape[0]):
+        row, c = n - comp.shape[0] + k, comp[k]
+        ids[row] = next_id + k
+        hits[row] = win_count[row] = 1 if hit[k] else 0
+        life[row] = 1
+        born_t_s[row] = last_t_s[row] = seen_t_s[row] = t_s
+        score[row] = new_score[k]
+        confirmed[row] = hits[row] >= confirm_length and new_score[k] >= confirm_score
+        means[row], covs[row] = mix_means[c], mix_covs[c]
+        win_t_s[row, last] = t_s  # only counted (win_count) when it is a detection
+        win_xy[row, last, 0], win_xy[row, last, 1] = mix_means[c, 0], mix_means[c, 1]
+        log_ids[log_start + k], log_t_s[log_start + k] = ids[row], t_s
+        log_means[log_start + k], log_covs[log_start + k] = means[row], covs[row]
+    return (ids, hits, life, confirmed, born_t_s, last_t_s, seen_t_s, score, alone, means, covs,
+            win_t_s, win_xy, win_count, gp_mu, gp_beta, gp_ky_inv)
+
+
+@njit(cache=True, nogil=True)
+def _extended(a: NDArray[Any], n: int) -> NDArray[Any]:  # pragma: no cover - compiled
+    """a's rows followed by zeros, n rows in all."""
+    out = np.zeros((n, *a.shape[1:]), dtype=a.dtype)
+    out[: a.shape[0]] = a
+    return out
 
 
 @njit(cache=True, nogil=True)

@@ -35,7 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.sat import track_kernels as kernels
-from companion.sat.fov import Region, prob_in_region, truncation_moments
+from companion.sat.fov import Disk, Region, prob_in_region, truncation_moments
 from companion.sat.gp import GpFit, GpPredictor
 from companion.sat.linalg import inv_det_2x2
 from companion.sat.mixture import Mixture
@@ -78,14 +78,6 @@ def _logit(p: float) -> float:
     return math.log(p / (1.0 - p))
 
 
-def _confirmable(hits: IntArray, score: FloatArray, params: TrackParams) -> BoolArray:
-    """Tracks with confirm_length detections whose existence has reached confirm_existence."""
-    result: BoolArray = (hits >= params.confirm_length) & (
-        score >= _logit(params.confirm_existence)
-    )
-    return result
-
-
 class _LogBuffer:
     """Growable storage shared by TrackLog views; only ever written past every view's end."""
 
@@ -125,17 +117,29 @@ class TrackLog:
         k = picked.shape[0]
         if k == 0:
             return self
+        buf = self.writable(k)
+        kernels.write_rows(buf.ids, buf.t_s, buf.means, buf.covs, self.length, ids, t_s, means,
+                           covs, picked)
+        return self.extended(buf, k)
+
+    def writable(self, k: int) -> _LogBuffer:
+        """A buffer holding this view's rows whose next k rows no view reads: this view's own,
+        or a grown copy of its rows."""
         buf = self.buffer
         end = self.length + k
-        if buf.used != self.length or end > buf.ids.shape[0]:
+        if k and (buf.used != self.length or end > buf.ids.shape[0]):
             grown = _LogBuffer(buf.means.shape[1], max(2 * buf.ids.shape[0], end))
             for name in ("ids", "t_s", "means", "covs"):
                 getattr(grown, name)[: self.length] = getattr(buf, name)[: self.length]
             buf = grown
-        kernels.write_rows(buf.ids, buf.t_s, buf.means, buf.covs, self.length, ids, t_s, means,
-                           covs, picked)
-        buf.used = end
-        return TrackLog(buf, end)
+        return buf
+
+    def extended(self, buf: _LogBuffer, k: int) -> TrackLog:
+        """The view of this one's rows and the k written after them into buf (from writable)."""
+        if k == 0:
+            return self
+        buf.used = self.length + k
+        return TrackLog(buf, buf.used)
 
     def history(self, track_id: int) -> tuple[FloatArray, FloatArray, FloatArray]:
         """(t_s (k,), means (k, d), covs (k, d, d)) of one track, oldest first."""
@@ -201,7 +205,7 @@ class Tracks:
     @property
     def existence(self) -> FloatArray:
         """(T,) probability that each track's target exists, from its score."""
-        result: FloatArray = 1.0 / (1.0 + np.exp(-self.score))
+        result: FloatArray = kernels.existences(self.score)
         return result
 
     def coasting(self, t_s: float, after_s: float) -> BoolArray:
@@ -213,14 +217,17 @@ class Tracks:
         """The GP fit of every track's window (a view, no copy)."""
         return GpFit(self.win_t_s, self.win_count, self.gp_mu, self.gp_beta, self.gp_ky_inv)
 
-    def refit_gp(self, rows: IntArray, gp: GpPredictor) -> Tracks:
-        """The tracks with the GP fits of the given rows' windows recomputed."""
-        if rows.size == 0:
+    def refit_fresh(self, t_s: float, gp: GpPredictor) -> Tracks:
+        """The tracks with the GP fits of the confirmed tracks' windows that gained a detection
+        at t_s recomputed (only confirmed tracks are predicted by their GP)."""
+        fit = gp.refit(self.win_t_s, self.win_xy, self.win_count, self.confirmed, t_s,
+                       self.gp_fit())
+        if fit.mu is self.gp_mu:
             return self
-        fit = gp.fit(self.win_t_s[rows], self.win_xy[rows], self.win_count[rows], check=False)
-        mu, beta, ky_inv = self.gp_mu.copy(), self.gp_beta.copy(), self.gp_ky_inv.copy()
-        mu[rows], beta[rows], ky_inv[rows] = fit.mu, fit.beta, fit.ky_inv
-        return replace(self, gp_mu=mu, gp_beta=beta, gp_ky_inv=ky_inv)
+        return Tracks(self.ids, self.hits, self.life, self.confirmed, self.born_t_s,
+                      self.last_t_s, self.seen_t_s, self.score, self.alone, self.means,
+                      self.covs, self.win_t_s, self.win_xy, self.win_count, fit.mu, fit.beta,
+                      fit.ky_inv, self.log, self.next_id)
 
     def take(self, keep: BoolArray | IntArray) -> Tracks:
         """The tracks selected by a mask or an index, sharing the log."""
@@ -252,7 +259,7 @@ def grown_covs(tracks: Tracks, t_s: float, motion: TargetMotion) -> FloatArray:
 
 def _gating_view(tracks: Tracks, t_s: float, motion: TargetMotion) -> Tracks:
     """The tracks with the honest covariance for those coasting alone, for association."""
-    if not tracks.alone.any():
+    if not np.count_nonzero(tracks.alone):  # (faster than any() on a few rows)
         return tracks
     covs = np.where(tracks.alone[:, None, None], grown_covs(tracks, t_s, motion), tracks.covs)
     return replace(tracks, covs=covs)
@@ -314,23 +321,26 @@ def maintain(
         gating.ids, gating.means, gating.covs, tracks.confirmed, params.motion.speed_m_s > 0.0,
         est_rows, mix.labels, mix.means, mix.covs, mix.weights, detected, params.gate_sq,
     )
-    updated = _support(tracks, rows, missed, supported_by, hit, mix, t_s, params, evidence)
-    # A moving target's confirmed track that nothing supports coasts on its growing uncertainty
-    # until the frames refute it; a stationary one's ends after the timeout.
-    if coasting.any():
-        updated = _coast(updated, coasting.nonzero()[0], t_s, params, evidence)
-    existence = updated.existence
-    if params.area is not None and coasting.any():
-        # a track coasting alone exists only as far as its Gaussian lies in the search area
-        honest = grown_covs(updated, t_s, params.motion)[coasting, :2, :2]
-        existence = existence.copy()
-        existence[coasting] *= prob_in_region(
-            updated.means[coasting, :2], honest, params.area, check=False
-        )
-    alive, labels, n_alive, n_new = kernels.survivors(
-        supported_by, coasting, tracks.confirmed, tracks.last_t_s, existence, updated.confirmed,
-        tracks.ids, mix.size, t_s, params.timeout_s, params.drop_existence,
+    updated, alive, labels, n_alive, n_new, decided = _support(
+        tracks, rows, missed, supported_by, hit, coasting, mix, t_s, params, evidence
     )
+    if not decided:
+        # A moving target's confirmed track that nothing supports coasts on its growing
+        # uncertainty until the frames refute it; a stationary one's ends after the timeout.
+        updated = _coast(updated, coasting.nonzero()[0], t_s, params, evidence)
+        in_area = _NO_P_IN
+        if params.area is not None:
+            # a track coasting alone exists only as far as its Gaussian lies in the search area
+            honest = grown_covs(updated, t_s, params.motion)[coasting, :2, :2]
+            in_area = np.ones(tracks.size)
+            in_area[coasting] = prob_in_region(
+                updated.means[coasting, :2], honest, params.area, check=False
+            )
+        alive, labels, n_alive, n_new = kernels.survivors(
+            supported_by, coasting, tracks.confirmed, tracks.last_t_s, updated.score, in_area,
+            updated.confirmed, tracks.ids, mix.size, t_s, params.timeout_s,
+            params.drop_existence,
+        )
     survivors = updated if n_alive == tracks.size else updated.take(alive)
     if n_new and evidence is not None and params.motion.speed_m_s > 0.0:
         survivors, labels = _absorb(
@@ -338,9 +348,9 @@ def maintain(
         )
     if new_rows.size == 0:
         return survivors, Mixture(mix.weights, mix.means, mix.covs, labels)
-    born = _new_tracks(tracks, new_rows, detected[new_rows], mix, t_s, params)
-    labels[new_rows] = born.ids
-    return _concat(survivors, born), Mixture(mix.weights, mix.means, mix.covs, labels)
+    with_new = _with_new_tracks(survivors, new_rows, detected[new_rows], mix, t_s, params)
+    labels[new_rows] = with_new.ids[survivors.size:]
+    return with_new, Mixture(mix.weights, mix.means, mix.covs, labels)
 
 
 def _absorb(
@@ -395,40 +405,44 @@ def _support(
     missed: IntArray,
     supported_by: IntArray,
     hit: BoolArray,
+    coasting: BoolArray,
     mix: Mixture,
     t_s: float,
     params: TrackParams,
     evidence: Evidence | None,
-) -> Tracks:
+) -> tuple[Tracks, BoolArray, IntArray, int, int, bool]:
     """The tracks with this step's support and evidence applied to the supported rows (`rows`;
-    `missed`: those not hit), see kernels.support.
+    `missed`: those not hit), and which survive unless a row is coasting: see kernels.support.
 
     Rows supported by a component are scored with that component's Gaussian (Eqs.
     track_score_hit, track_score_miss); unsupported rows and blind steps score nothing. The GP
     window holds detected positions only: a coasting track's own predictions would feed back
     into its next prediction.
     """
-    if rows.size == 0:
-        return tracks
-    p_in = np.zeros(tracks.size)
-    if evidence is not None and missed.size:
+    p_in, center_xy, radius_m = _NO_P_IN, _NO_R[0], 0.0
+    if evidence is not None and isinstance(evidence.region, Disk):  # p(F) in kernels.support
+        center_xy, radius_m = evidence.region.center_xy, evidence.region.radius_m
+    elif evidence is not None and missed.size:  # a polygon's needs scipy's Owen's T
         comp = supported_by[missed]
+        p_in = np.zeros(tracks.size)
         p_in[missed] = prob_in_region(
             mix.means[comp, :2], mix.covs[comp, :2, :2], evidence.region, check=False
         )
     r_cov = _NO_R if evidence is None else evidence.r_cov
-    means, covs, hits, life, last_t, seen_t, alone, score, confirmed, win_t, win_xy, win_count = (
-        kernels.support(
-            tracks.means, tracks.covs, tracks.hits, tracks.life, tracks.last_t_s,
-            tracks.seen_t_s, tracks.alone, tracks.score, tracks.confirmed, tracks.win_t_s,
-            tracks.win_xy, tracks.win_count, supported_by, hit, p_in, mix.means, mix.covs, t_s,
-            evidence is not None, r_cov, 0.0 if evidence is None else evidence.p_detect,
-            0.0 if evidence is None else evidence.clutter_per_m2, params.gate_sq,
-            _logit(params.max_existence), params.window, params.confirm_length,
-            _logit(params.confirm_existence),
-        )
+    buf = tracks.log.writable(rows.shape[0])
+    (means, covs, hits, life, last_t, seen_t, alone, score, confirmed, win_t, win_xy, win_count,
+     alive, labels, n_alive, n_new, decided) = kernels.support(
+        tracks.means, tracks.covs, tracks.hits, tracks.life, tracks.last_t_s, tracks.seen_t_s,
+        tracks.alone, tracks.score, tracks.confirmed, tracks.win_t_s, tracks.win_xy,
+        tracks.win_count, tracks.ids, supported_by, hit, coasting, p_in, center_xy, radius_m,
+        mix.means, mix.covs, t_s, evidence is not None, r_cov,
+        0.0 if evidence is None else evidence.p_detect,
+        0.0 if evidence is None else evidence.clutter_per_m2, params.gate_sq,
+        _logit(params.max_existence), params.window, params.confirm_length,
+        _logit(params.confirm_existence), buf.ids, buf.t_s, buf.means, buf.covs,
+        tracks.log.length, params.timeout_s, params.drop_existence,
     )
-    return Tracks(
+    updated = Tracks(
         ids=tracks.ids,
         hits=hits,
         life=life,
@@ -446,13 +460,18 @@ def _support(
         gp_mu=tracks.gp_mu,
         gp_beta=tracks.gp_beta,
         gp_ky_inv=tracks.gp_ky_inv,
-        log=tracks.log.append(tracks.ids, t_s, means, covs, rows),
+        log=tracks.log.extended(buf, rows.shape[0]),
         next_id=tracks.next_id,
     )
+    return updated, alive, labels, n_alive, n_new, decided
 
 
 _NO_R = np.zeros((2, 2))
 """Placeholder R for kernels.support on a blind step, which scores nothing."""
+
+_NO_P_IN = np.zeros(0)
+"""Placeholder p(F) for kernels.support (a disk's it computes itself, a blind step reads none)
+and in_area for kernels.survivors (no track coasting in a search area)."""
 
 
 def pushed_windows(
@@ -467,7 +486,7 @@ def pushed_windows(
     return win_t, win_xy, win_count
 
 
-def _new_tracks(
+def _with_new_tracks(
     tracks: Tracks,
     comp: IntArray,
     hit: BoolArray,
@@ -476,45 +495,23 @@ def _new_tracks(
     params: TrackParams,
     existence: FloatArray | None = None,
 ) -> Tracks:
-    """One new tentative track per unassigned estimate (component rows `comp`), with fresh ids.
+    """The tracks followed by one new tentative track per unassigned estimate (component rows
+    `comp`, `hit`: born of a detection), with fresh ids; the new ones' first rows go to the log
+    (kernels.append_tracks).
 
     Its score starts at the logit of `existence`, by default of its component's weight (the
     PHD's own belief in it, within [0.01, 0.99]).
     """
     k = comp.shape[0]
-    ids = tracks.next_id + np.arange(k, dtype=np.int64)
-    hits = hit.astype(np.int64)
-    win_t = np.zeros((k, params.window))
-    win_xy = np.zeros((k, params.window, 2))
-    win_t[:, -1] = t_s
-    win_xy[:, -1] = mix.means[comp, :2]  # only counted (win_count) when it is a detection
     w = np.clip(mix.weights[comp], 0.01, 0.99) if existence is None else existence
     score = np.log(w / (1.0 - w))
-    return Tracks(
-        ids=ids,
-        hits=hits,
-        life=np.ones(k, dtype=np.int64),
-        confirmed=_confirmable(hits, score, params),
-        born_t_s=np.full(k, t_s),
-        last_t_s=np.full(k, t_s),
-        seen_t_s=np.full(k, t_s),
-        score=score,
-        alone=np.zeros(k, dtype=bool),
-        means=mix.means[comp],
-        covs=mix.covs[comp],
-        win_t_s=win_t,
-        win_xy=win_xy,
-        win_count=hits.copy(),
-        gp_mu=np.zeros((k, 2)),
-        gp_beta=np.zeros((k, params.window, 2)),
-        gp_ky_inv=np.zeros((k, params.window, params.window)),
-        log=tracks.log,
-        next_id=tracks.next_id + k,
+    buf = tracks.log.writable(k)
+    rows = kernels.append_tracks(
+        tracks.ids, tracks.hits, tracks.life, tracks.confirmed, tracks.born_t_s,
+        tracks.last_t_s, tracks.seen_t_s, tracks.score, tracks.alone, tracks.means, tracks.covs,
+        tracks.win_t_s, tracks.win_xy, tracks.win_count, tracks.gp_mu, tracks.gp_beta,
+        tracks.gp_ky_inv, comp, hit, mix.means, mix.covs, score, t_s, tracks.next_id,
+        params.confirm_length, _logit(params.confirm_existence), buf.ids, buf.t_s, buf.means,
+        buf.covs, tracks.log.length,
     )
-
-
-def _concat(old: Tracks, new: Tracks) -> Tracks:
-    """Old tracks followed by new ones; the new ones' first rows go to the log."""
-    log = old.log.append(new.ids, float(new.born_t_s[0]), new.means, new.covs)
-    rows = {name: np.concatenate([getattr(old, name), getattr(new, name)]) for name in _ROW_FIELDS}
-    return Tracks(**rows, log=log, next_id=new.next_id)
+    return Tracks(*rows, log=tracks.log.extended(buf, k), next_id=tracks.next_id + k)

@@ -239,7 +239,7 @@ def detection(
     covs = np.empty((m * n, d, d))
     labels = np.empty(m * n, dtype=np.int64)
     explained = np.zeros(m)
-    _detection_kernel(
+    detection_kernel(
         pred.weights, pred.means, pred.covs, pred.labels, p_d, measurements_xy, r_cov,
         clutter_intensity + birth_intensity, weights, means, covs, labels, explained,
     )
@@ -247,7 +247,7 @@ def detection(
 
 
 @njit(cache=True, nogil=True)
-def _detection_kernel(  # pragma: no cover - compiled; tested through detection
+def detection_kernel(  # pragma: no cover - compiled; tested through detection
     w: FloatArray,
     mean: FloatArray,
     cov: FloatArray,
