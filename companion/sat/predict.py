@@ -15,7 +15,7 @@ from companion.sat.mixture import Mixture
 FloatArray = NDArray[np.float64]
 
 _VAR_FLOOR_REL = 1e-12
-"""Relative increase of every variance in a constant-velocity prediction (see predict_linear)."""
+"""Relative increase of every variance in a constant-velocity prediction (see predict)."""
 
 
 class LinearModel(Enum):
@@ -155,7 +155,7 @@ def _predict_kernel(  # pragma: no cover - compiled; tested through predict
 
 
 @njit(cache=True, nogil=True)
-def _apply_gp_kernel(  # pragma: no cover - compiled; tested through apply_gp
+def _apply_gp_kernel(  # pragma: no cover - compiled; tested through predict
     labels: NDArray[np.int64],
     prior_means: FloatArray,
     prior_covs: FloatArray,
