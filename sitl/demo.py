@@ -26,6 +26,7 @@ from companion.command import run_command
 from companion.config import ServiceConfig, parse_config
 from companion.errors import ConfigError
 from companion.keys import load_toml
+from companion.pipeline import SearchFrame
 from companion.report import Score, score
 from companion.service import RunResult, Service
 from companion.sim.scenario import Scenario, load_scenario, scenario_to_dict
@@ -86,6 +87,7 @@ class DemoResult:
     truth_xy_m: FloatArray  # search frame
     tracks_xy_m: FloatArray
     autopilot: Snapshot  # the mock autopilot's state at the end
+    frame: SearchFrame  # the run's search frame (truth and tracks are in it)
 
 
 async def fly(scenario: Scenario, *, speedup: float, out_dir: Path, faults: str = "",
@@ -124,7 +126,7 @@ async def fly(scenario: Scenario, *, speedup: float, out_dir: Path, faults: str 
     truth_xy = np.array(truth).reshape(-1, 2)
     tracks_xy = np.array([[t.easting_m, t.northing_m] for t in run.tracks]).reshape(-1, 2)
     tracks_xy = frame.from_utm(tracks_xy)
-    return DemoResult(run, score(tracks_xy, truth_xy), truth_xy, tracks_xy, final)
+    return DemoResult(run, score(tracks_xy, truth_xy), truth_xy, tracks_xy, final, frame)
 
 
 def report(result: DemoResult) -> str:
