@@ -9,7 +9,9 @@ out in order. Rules that hold on every path:
   never answers (a lossy link) is asked again every 2 s for `offboard_retry_s`, as long as no
   mode change was seen since the first ask. ARM likewise (`arm_retry_s`); TAKEOFF at most once.
 * Whenever we stop commanding (mode changed by someone else, failsafe, end, link lost) the same
-  tick carries STOP_SETPOINTS, before any mode request (MAVSDK's offboard stop asks for Hold).
+  tick carries STOP_SETPOINTS (which asks for no mode). From our own OFFBOARD, the end action's
+  or the low battery's mode request comes first: the stream goes on while a lossy link retries
+  it, so that PX4 does not meet a lapsed stream (its offboard-loss failsafe) on the way.
 * After a takeover, with `resume_on_pilot_offboard` the shell streams HOLD_HERE setpoints (the
   vehicle's current position, ignored by the autopilot outside OFFBOARD) once it reports the
   planner stream stopped, so that PX4 accepts OFFBOARD if the pilot selects it; the search then
@@ -321,7 +323,7 @@ def _searching(m: Mission, i: MissionInputs, t_s: float) -> tuple[Mission, list[
         return _takeover(m, i, t_s)
     if i.battery_low:
         return _go(m, State.FAILSAFE, t_s, "battery low: stopped, requesting RTL",
-                   Severity.CRITICAL, [*_stop(m), Command(CommandKind.RTL)], stream=None)
+                   Severity.CRITICAL, [Command(CommandKind.RTL), *_stop(m)], stream=None)
     usable = i.health_ok and i.position_ok
     if m.state is State.PAUSED:
         if not usable:
@@ -334,7 +336,7 @@ def _searching(m: Mission, i: MissionInputs, t_s: float) -> tuple[Mission, list[
     reason = _end_reason(cfg, i, t_s - started_s)
     if reason is not None:
         return _go(m, State.DONE, t_s, f"{reason}: {cfg.end_action}", Severity.NOTICE,
-                   [_STOP, Command(_END_COMMAND[cfg.end_action])], stream=None)
+                   [Command(_END_COMMAND[cfg.end_action]), _STOP], stream=None)
     return m, []
 
 

@@ -312,7 +312,7 @@ class Service:
     def _view_vehicle(self) -> Vehicle | None:
         """The vehicle for the page: its newest pose on the grid, heading and height."""
         view, frame = self.view, self.pipeline.frame
-        sample = None if view.latest_boot_s is None else view.poses.at(view.latest_boot_s)
+        sample = view.poses.newest()
         if sample is None:
             return None
         xy = vehicle_xy(frame, sample.lat_deg, sample.lon_deg)
@@ -486,7 +486,7 @@ class Service:
         fresh = (now_s is not None and view.latest_boot_s is not None
                  and now_s - view.latest_boot_s
                  < max(TELEMETRY_STALE_S, TELEMETRY_STALE_WALL_S * self.time_scale))
-        here = None if view.latest_boot_s is None else view.poses.at(view.latest_boot_s)
+        here = view.poses.newest()
         state = self.pipeline.state
         confirmed = 0 if state is None else int(state.tracks.confirmed.sum())
         passes = 0
@@ -524,8 +524,7 @@ class Service:
             inputs = self._inputs()
             before = self.mission.state
             if self._checkpoint_found is not None and inputs.connected:
-                latest_s = self.view.latest_boot_s
-                here = None if latest_s is None else self.view.poses.at(latest_s)
+                here = self.view.poses.newest()
                 if here is not None:  # the first position decides: flying or on the ground
                     self._resume_if_flying(inputs.in_air or here.alt_rel_m > MIN_FLYING_M)
             if not stalled:
@@ -644,7 +643,7 @@ class Service:
 
     async def _send_setpoint(self, link: MavsdkLink, dt_s: float) -> None:
         view, origin = self.view, self.view.local_origin()
-        sample = None if view.latest_boot_s is None else view.poses.at(view.latest_boot_s)
+        sample = view.poses.newest()
         if origin is None or sample is None or view.local_ned_m is None or view.home_amsl_m is None:
             return
         if self._limits is None:

@@ -166,7 +166,7 @@ def test_without_resume_a_takeover_is_final_for_the_service() -> None:
 
 def test_low_battery_stops_and_requests_rtl_lost_position_pauses() -> None:
     m, commands = advance(searching(), replace(OFFBOARD, battery_low=True), 10.0)
-    assert m.state is State.FAILSAFE and kinds(commands) == [K.STOP_SETPOINTS, K.RTL]
+    assert m.state is State.FAILSAFE and kinds(commands) == [K.RTL, K.STOP_SETPOINTS]
     assert commands[-1].severity is Severity.CRITICAL
     assert run(m, [OFFBOARD, OK, replace(OK, connected=False)] * 10)[1] == [[]] * 30  # final
     for lost in (replace(OFFBOARD, position_ok=False), replace(OFFBOARD, health_ok=False)):
@@ -203,7 +203,7 @@ def test_end_action_is_issued_exactly_once(
     m, ticks = run(m, [not_yet] * 5, 4.0)
     assert m.state is State.SEARCHING and ticks == [[]] * 5
     m, commands = advance(m, inputs, when_s)
-    assert m.state is State.DONE and kinds(commands) == [K.STOP_SETPOINTS, kind]
+    assert m.state is State.DONE and kinds(commands) == [kind, K.STOP_SETPOINTS]
     assert commands[-1].text.endswith(f": {action}")
     m, ticks = run(m, [inputs, OK, replace(OK, connected=False), OFFBOARD] * 20, when_s + 1)
     assert ticks == [[]] * 80
@@ -487,7 +487,9 @@ def test_rules_hold_over_random_sequences(
         if new.state is not m.state:  # every transition says so, last
             assert texts(commands) != [] and commands[-1].kind is K.STATUSTEXT
         if m.state is State.SEARCHING and new.state is not State.SEARCHING:
-            assert ks[0] is K.STOP_SETPOINTS  # let go in the same tick
+            # let go in the same tick: at once, or right after the end's or failsafe's request
+            assert K.STOP_SETPOINTS in ks[:2] and ks.index(K.STOP_SETPOINTS) == (
+                ks[0] in (K.HOLD, K.LAND, K.RTL))
             lost_control = True
         if lost_control:
             assert K.START_OFFBOARD not in ks and K.ARM not in ks and K.TAKEOFF not in ks

@@ -104,6 +104,25 @@ def test_gaps_and_times_outside_the_samples_give_none() -> None:
     assert lone.at(5.05) == GeoPoseSample(5.05, 47.0, 8.0, 500.0, 20.0, LEVEL)  # held
 
 
+def test_the_newest_pose_is_at_the_newest_position_while_attitudes_run_ahead() -> None:
+    """A lossy link: the position at 13.26 s, attitudes on to 13.5 s. at(13.5) would extrapolate
+    the position 0.24 s and says None; newest() is the pose at 13.26 s. Once the attitudes are
+    max_gap_s ahead, the position stream has stopped: None."""
+    buffer = _moving([13.0 + 0.04 * i for i in range(8)])  # to 13.28
+    assert buffer.newest() == buffer.at(13.28)
+    for t_s in (13.3, 13.4, 13.5):
+        buffer.add_attitude(t_s, _yaw_q(10.0))
+    assert buffer.at(13.5) is None
+    here = buffer.newest()
+    assert here is not None and here.t_s == 13.28 and here.alt_rel_m == _linear(13.28)[3]
+    buffer.add_attitude(13.79, LEVEL)
+    assert buffer.newest() is None
+    assert PoseBuffer().newest() is None
+    lone = PoseBuffer()
+    lone.add_position(5.0, 47.0, 8.0, 500.0, 20.0)
+    assert lone.newest() is None  # no attitude yet
+
+
 def test_a_reboot_clears_the_buffer() -> None:
     buffer = _moving([100.0 + 0.1 * i for i in range(10)])
     buffer.add_position(100.2, *_linear(100.2))  # late, but not a reboot

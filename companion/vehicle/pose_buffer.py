@@ -158,6 +158,18 @@ class PoseBuffer:
             raise InputError(f"attitude.q_wxyz must be a unit quaternion, norm is {norm:.6f}")
         self._add(self._attitudes, _finite("attitude.t_s", t_s), tuple(c / norm for c in q))
 
+    def newest(self) -> GeoPoseSample | None:
+        """The pose at the newest position's time, or None when there is none or when it is more
+        than max_gap_s older than the newest attitude (the position stream stopped).
+
+        at(the newest time of either stream) is None whenever a lossy link has delivered an
+        attitude more than max_extrapolation_s after the last position; the vehicle is then
+        still where that position put it, a moment ago."""
+        positions, attitudes = self._positions.t_s, self._attitudes.t_s
+        if not positions or (attitudes and attitudes[-1] - positions[-1] > self.max_gap_s):
+            return None
+        return self.at(positions[-1])
+
     def _add(self, series: _Series, t_s: float, value: tuple[float, ...]) -> None:
         if series.t_s and t_s < series.t_s[-1] - self.reboot_jump_s:
             self.clear()
