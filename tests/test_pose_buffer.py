@@ -105,9 +105,9 @@ def test_gaps_and_times_outside_the_samples_give_none() -> None:
 
 
 def test_the_newest_pose_is_at_the_newest_position_while_attitudes_run_ahead() -> None:
-    """A lossy link: the position at 13.26 s, attitudes on to 13.5 s. at(13.5) would extrapolate
-    the position 0.24 s and says None; newest() is the pose at 13.26 s. Once the attitudes are
-    max_gap_s ahead, the position stream has stopped: None."""
+    """A lossy link: the last position at 13.28 s, attitudes on to 13.5 s. at(13.5) would
+    extrapolate the position 0.22 s and says None; newest() is the pose at 13.28 s. Once the
+    attitudes are max_gap_s ahead, the position stream has stopped: None."""
     buffer = _moving([13.0 + 0.04 * i for i in range(8)])  # to 13.28
     assert buffer.newest() == buffer.at(13.28)
     for t_s in (13.3, 13.4, 13.5):
