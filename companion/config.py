@@ -45,6 +45,7 @@ from companion.keys import (
     unknown_key,
 )
 from companion.plan.gate import GateLimits
+from companion.plan.keep_in import clearance_m as clearance_m_at
 from companion.plan.planners import PlannerKind
 from companion.sat.params import FILTER_KEYS, FilterSpec, FovKind
 
@@ -147,6 +148,7 @@ class SafetyConfig:
     max_alt_m: float
     max_speed_h_m_s: float
     max_speed_v_m_s: float
+    fence_clearance_m: float = 3.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -292,7 +294,8 @@ SECTIONS: dict[str, tuple[Key, ...]] = {
     "filter": FILTER_KEYS,
     "search": (
         Key("area", Points(_LAT_LON), REQUIRED,
-            "the search area polygon; the lawn mower covers its bounding box", field="area_latlon"),
+            "the search area polygon; the lawn mower covers its bounding box, within the geofence "
+            "(safety.fence_clearance_m)", field="area_latlon"),
         Key("utm_epsg", Int(ge=0), Derived("the UTM zone of the area's centre"),
             "EPSG code of the UTM zone for the whole flight (326xx north, 327xx south)"),
         Key("altitude_m", Float(gt=0, le=500), 8.0, "search altitude above home"),
@@ -318,6 +321,9 @@ SECTIONS: dict[str, tuple[Key, ...]] = {
             "setpoints move at most this fast horizontally"),
         Key("max_speed_v_m_s", Float(gt=0, le=10), 1.0,
             "setpoints move at most this fast vertically"),
+        Key("fence_clearance_m", Float(ge=0, le=100), 3.0,
+            "the planner keeps its path this far inside the geofence (a vehicle overshoots a "
+            "lane's end; its position wanders), so that the gate need not move a setpoint"),
     ),
     "mission": (
         Key("auto_arm_takeoff", Bool(), False,
@@ -379,16 +385,28 @@ def _latlon_polygon(key: str, points: FloatArray) -> FloatArray:
     return points
 
 
-def _geofence_shape(fence_latlon: FloatArray) -> None:
+def _geofence_shape(fence_latlon: FloatArray, clearance_m: float) -> None:
     """ConfigError naming safety.geofence unless the safety gate accepts its shape (simple,
-    with an area), checked in the local plane at its first vertex."""
+    with an area), and naming safety.fence_clearance_m unless some point of the fence keeps it;
+    checked in the local plane at its first vertex."""
     lat0, lon0 = (float(v) for v in fence_latlon[0])
     north, east, _ = LocalNed(lat0, lon0, 0.0).geodetic_to_ned(
         fence_latlon[:, 0], fence_latlon[:, 1], 0.0)
+    fence_ne = np.column_stack([north, east])
     try:
-        GateLimits(np.column_stack([north, east]), 1.0, 2.0, 1.0, 1.0)
+        GateLimits(fence_ne, 1.0, 2.0, 1.0, 1.0)
     except InputError as exc:
         raise ConfigError("safety.geofence", exc.reason) from exc
+    # The most clearance on a 60 x 60 grid, give or take half the grid's diagonal.
+    low, high = fence_ne.min(axis=0), fence_ne.max(axis=0)
+    axes = [np.linspace(a, b, 60) for a, b in zip(low, high, strict=True)]
+    grid = np.stack(np.meshgrid(*axes), axis=-1).reshape(-1, 2)
+    slack_m = float(np.hypot(*(high - low))) / 59.0 / 2.0
+    widest_m = float(clearance_m_at(grid, fence_ne).max())
+    if widest_m + slack_m < clearance_m:
+        raise ConfigError("safety.fence_clearance_m",
+                          f"{clearance_m:g} m: no point of safety.geofence is that far inside it "
+                          f"(at most about {widest_m:.1f} m); the plan would have nowhere to fly")
 
 
 def _relative(base: Path | None, path: str) -> str:
@@ -421,7 +439,8 @@ def _safety(safety: dict[str, Any], area: FloatArray | None) -> dict[str, Any]:
         if area is None:  # the search area is wrong: reported as such
             return safety
         safety["geofence_latlon"] = area
-    _geofence_shape(_latlon_polygon("safety.geofence", safety["geofence_latlon"]))
+    _geofence_shape(_latlon_polygon("safety.geofence", safety["geofence_latlon"]),
+                    safety["fence_clearance_m"])
     low_m, high_m = safety["min_alt_m"], safety["max_alt_m"]
     if low_m >= high_m:
         raise ConfigError("safety.max_alt_m",

@@ -47,8 +47,10 @@ from companion.plan.planners import LawnMower, Planner, PlannerKind, make_planne
 from companion.plan.search_track import SearchTrackParams
 from companion.plan.setpoints import (
     Carrot,
+    fence_keep_in,
     gate_limits,
     hold_setpoint,
+    ramp,
     search_params,
     search_setpoint,
     vehicle_xy,
@@ -129,6 +131,7 @@ class Service:
         self._carrot = Carrot()
         self._planner: Planner | None = None  # made when the search starts, from where we are
         self._limits: GateLimits | None = None
+        self._keep_in = fence_keep_in(config.safety, self.pipeline.frame)
         self._folder: RunFolder | None = None
         self._announced: set[int] = set()
         self._streaming_since_s: float | None = None
@@ -153,11 +156,12 @@ class Service:
             time_limit_s=m.time_limit_s, end_action=m.end_action)
 
     def _make_planner(self, start_xy: FloatArray) -> Planner:
-        """The configured planner; a lawn mower's passes each end where the search started."""
+        """The configured planner; a lawn mower's passes each end where the search started, and
+        its lanes keep the clearance inside the geofence."""
         s, world = self.config.search, self.pipeline.frame.world
         search = self._search_params() if s.planner == PlannerKind.SEARCH_TRACK else None
         return make_planner(s.planner, world, world.clip(start_xy), s.lane_spacing_m, s.sweeps,
-                            search)
+                            search, self._keep_in)
 
     def _search_params(self) -> SearchTrackParams:
         """What the search-and-track planner knows in this flight (setpoints.search_params)."""
@@ -630,7 +634,8 @@ class Service:
     # -- setpoints ---------------------------------------------------------------------------
 
     def _target_xy(self, vehicle_xy_m: FloatArray, dt_s: float) -> FloatArray:
-        """The search-frame point the vehicle should be at now (a carrot along the plan)."""
+        """The search-frame point the vehicle should be at now: a carrot along the plan, kept
+        the clearance inside the geofence."""
         state = self.pipeline.state
         if state is None:
             return vehicle_xy_m if self._carrot.xy_m is None else self._carrot.xy_m
@@ -639,7 +644,7 @@ class Service:
         target, self._carrot = self._carrot.advance(
             self._planner, vehicle_xy_m, state.mixture, state.tracks, self.pipeline.frame.world,
             self.config.search.speed_m_s, dt_s, state.t_s)
-        return target
+        return self._keep_in.nearest(target)
 
     async def _send_setpoint(self, link: MavsdkLink, dt_s: float) -> None:
         view, origin = self.view, self.view.local_origin()
@@ -657,7 +662,10 @@ class Service:
             target_xy = self._target_xy(vehicle_xy(frame, sample.lat_deg, sample.lon_deg), dt_s)
             wanted = search_setpoint(frame, origin, target_xy,
                                      view.home_amsl_m + self.config.search.altitude_m, yaw_deg)
-        result = gate(self._limits, wanted, self._previous, vehicle_ned, dt_s)
+        previous = self._previous
+        wanted = ramp(wanted, vehicle_ned if previous is None else np.array(
+            [previous.north_m, previous.east_m, previous.down_m]), self._limits, dt_s)
+        result = gate(self._limits, wanted, previous, vehicle_ned, dt_s)
         if result.action is not GateAction.PASS:
             self.counters[f"setpoints_{result.action.value}"] += 1
             self._event("gate", action=result.action.value, reasons=list(result.reasons))

@@ -126,6 +126,16 @@ def test_every_error_is_reported_within_and_across_tables() -> None:
     assert str(info.value).startswith(f"{info.value.key}: {info.value.problem}")
 
 
+def test_a_clearance_no_point_of_the_fence_keeps_is_named_by_its_key() -> None:
+    """A plan kept that far inside the fence would have nowhere to fly."""
+    config = parse_config(_minimal())
+    assert config.safety.fence_clearance_m == 3.0  # the default
+    with pytest.raises(ConfigError) as info:
+        parse_config(_minimal(safety={"fence_clearance_m": 100.0}))
+    assert info.value.key == "safety.fence_clearance_m"
+    assert "no point of safety.geofence is that far inside it" in str(info.value)
+
+
 def test_a_geofence_the_gate_refuses_is_named_by_its_key() -> None:
     """The gate's own reason (a symmetric bow tie has no signed area), under the config's key."""
     bow_tie = [AREA[0], AREA[2], AREA[1], AREA[3]]

@@ -125,6 +125,25 @@ def test_field_experiment_mission(flavour: Literal["px4", "ardupilot"], tmp_path
     assert kinds["HEARTBEAT"] > 20 and kinds["GLOBAL_POSITION_INT"] > 500
 
 
+def test_a_fence_along_the_search_area_is_flown_without_the_gate_moving_a_setpoint(
+        tmp_path: Path) -> None:
+    """safety.geofence at its default, the search area itself: the lanes keep
+    safety.fence_clearance_m inside it and the setpoints ramp within the speed limits, so the
+    gate moves none but while the vehicle, at home on the area's corner, is just outside it."""
+    scenario = _scenario("px4")
+    w, h = scenario.world.size_m
+    north, east = np.array([0.0, 0.0, h, h]), np.array([0.0, w, w, 0.0])
+    lat, lon, _ = scenario.geo.local_ned().ned_to_geodetic(north, east, np.zeros(4))
+    area = np.column_stack([lat, lon]).tolist()
+    result = _fly(scenario, tmp_path, safety={"geofence": area})
+    _assert_every_tag_found(result)
+    events = _lines(result.run.out_dir / "events.jsonl")
+    moved = [e["reasons"] for e in events if e["event"] == "gate"]
+    assert all(any(r.startswith("vehicle ") and "outside geofence" in r for r in rs)
+               for rs in moved), moved
+    assert result.run.counters["setpoints_clamped"] < 0.02 * result.run.counters["setpoints"]
+
+
 def test_field_experiment_mission_with_the_lmb(tmp_path: Path) -> None:
     """The field experiment flown by the service with filter.kind = "lmb"."""
     s = _scenario("px4")

@@ -12,8 +12,16 @@ import pytest
 from companion import mission as ms
 from companion.config import SafetyConfig
 from companion.geo import LocalNed
+from companion.plan.gate import GateAction, GateLimits, Setpoint, gate
 from companion.plan.planners import LawnMower
-from companion.plan.setpoints import REACHED_M, Carrot, gate_limits, hold_setpoint, tilt_cos
+from companion.plan.setpoints import (
+    REACHED_M,
+    Carrot,
+    gate_limits,
+    hold_setpoint,
+    ramp,
+    tilt_cos,
+)
 from companion.plan.world import World
 from companion.sat.mixture import Mixture
 from companion.sat.tracks import Tracks
@@ -42,6 +50,26 @@ def test_gate_limits_count_altitudes_above_home() -> None:
 def test_hold_is_where_the_vehicle_is() -> None:
     sp = hold_setpoint(np.array([1.0, 2.0, -3.0]), 90.0)
     assert (sp.north_m, sp.east_m, sp.down_m, sp.yaw_deg) == (1.0, 2.0, -3.0, 90.0)
+
+
+def test_a_ramped_setpoint_is_one_the_gate_passes() -> None:
+    """A jump is cut to just under the gate's speed limits from the last setpoint, each axis
+    group on its own; a step within them is left as it is."""
+    limits = GateLimits(np.array([[-50.0, -50.0], [50.0, -50.0], [50.0, 50.0], [-50.0, 50.0]]),
+                        2.0, 30.0, max_speed_h_m_s=4.0, max_speed_v_m_s=1.0)
+    last = Setpoint(0.0, 0.0, -8.0, 0.0)
+    here = np.array([0.0, 0.0, -8.0])
+    near = Setpoint(0.2, 0.1, -8.05, 0.0)
+    assert ramp(near, here, limits, 0.1) is near
+    far = ramp(Setpoint(3.0, 4.0, -10.0, 90.0), here, limits, 0.1)
+    assert math.hypot(far.north_m, far.east_m) == pytest.approx(0.99 * 0.4)
+    assert far.north_m / far.east_m == pytest.approx(0.75) and far.yaw_deg == 90.0
+    assert far.down_m == pytest.approx(-8.0 - 0.99 * 0.1)
+    assert gate(limits, far, last, here, 0.1).action is GateAction.PASS
+    assert gate(limits, Setpoint(3.0, 4.0, -10.0, 90.0), last, here, 0.1).action is (
+        GateAction.CLAMPED)
+    climb = ramp(Setpoint(0.0, 0.0, -12.0, 0.0), here, limits, 0.1)
+    assert (climb.north_m, climb.east_m) == (0.0, 0.0) and climb.down_m < -8.0
 
 
 def test_the_carrot_moves_at_the_search_speed_and_a_reached_waypoint_counts() -> None:

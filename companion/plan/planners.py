@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.errors import InputError
+from companion.plan.keep_in import KeepIn
 from companion.plan.search_track import SearchTrackParams, make_search_track
 from companion.plan.world import World
 from companion.sat.mixture import Mixture
@@ -56,12 +57,16 @@ class Planner(Protocol):
 
 
 def lawnmower_path(
-    world: World, start_xy: FloatArray, lane_spacing_m: float, sweeps: int
+    world: World, start_xy: FloatArray, lane_spacing_m: float, sweeps: int,
+    keep_in: KeepIn | None = None,
 ) -> FloatArray:
     """Waypoints of `sweeps` boustrophedon passes over the world, each returning to start.
 
     Lanes run north-south at x = s/2, 3s/2, ... (s = lane spacing) so that a sensor that sees
     s/2 to each side covers the whole width; the last lane is moved inside the world if needed.
+    With `keep_in`, lanes are moved into its east-west range (the outermost up to half a spacing
+    further, to where they keep its clearance longest) and cut to the stretches inside the world
+    that keep it (a lane keeping none is left out); the start is the nearest point keeping it.
     """
     if lane_spacing_m <= 0:
         raise InputError(f"lane spacing must be > 0, got {lane_spacing_m!r}",
@@ -69,12 +74,21 @@ def lawnmower_path(
     lanes = np.arange(lane_spacing_m / 2.0, world.width_m, lane_spacing_m)
     if lanes.size == 0:
         lanes = np.array([world.width_m / 2.0])
-    points: list[list[float]] = []
-    for _ in range(sweeps):
-        for i, x in enumerate(lanes):
-            ys = (0.0, world.height_m) if i % 2 == 0 else (world.height_m, 0.0)
-            points += [[float(x), ys[0]], [float(x), ys[1]]]
-        points.append([float(start_xy[0]), float(start_xy[1])])
+    runs = [[(0.0, world.height_m)] for _ in lanes]
+    if keep_in is not None:
+        lanes = np.unique(np.clip(lanes, *keep_in.x_range()))
+        if lanes.size > 1:  # the outermost lanes, up to half a spacing inwards
+            lanes[0] = keep_in.longest_lane_x(lanes[0], lanes[0] + lane_spacing_m / 2.0)
+            lanes[-1] = keep_in.longest_lane_x(lanes[-1], lanes[-1] - lane_spacing_m / 2.0)
+        runs = [[(max(a, 0.0), min(b, world.height_m)) for a, b in keep_in.lane_runs(float(x))
+                 if a <= world.height_m and b >= 0.0] for x in lanes]
+        start_xy = keep_in.nearest(start_xy)
+    one_sweep: list[list[float]] = []
+    flown = [(float(x), lane) for x, lane in zip(lanes, runs, strict=True) if lane]
+    for i, (x, lane) in enumerate(flown):
+        for y_from, y_to in (lane if i % 2 == 0 else [(b, a) for a, b in lane[::-1]]):
+            one_sweep += [[x, y_from], [x, y_to]]
+    points = [*one_sweep, [float(start_xy[0]), float(start_xy[1])]] * sweeps
     return np.asarray(points, dtype=np.float64)
 
 
@@ -157,12 +171,12 @@ def move_towards(
 
 def make_planner(
     kind: PlannerKind, world: World, start_xy: FloatArray, lane_spacing_m: float, sweeps: int,
-    search: SearchTrackParams | None = None,
+    search: SearchTrackParams | None = None, keep_in: KeepIn | None = None,
 ) -> Planner:
-    """The planner of that kind; a lawn mower's `sweeps` passes each end at start_xy; the
-    search-and-track planner needs `search` (InputError without it)."""
+    """The planner of that kind; a lawn mower's `sweeps` passes each end at start_xy, inside
+    `keep_in` if given; the search-and-track planner needs `search` (InputError without it)."""
     if kind == PlannerKind.LAWNMOWER:
-        return LawnMower(lawnmower_path(world, start_xy, lane_spacing_m, sweeps))
+        return LawnMower(lawnmower_path(world, start_xy, lane_spacing_m, sweeps, keep_in))
     if kind == PlannerKind.NEAREST_GAUSSIAN:
         return NearestGaussian()
     if kind == PlannerKind.LARGEST_GAUSSIAN:

@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 from companion.config import SafetyConfig, SearchConfig
 from companion.geo import LocalNed
 from companion.plan.gate import GateLimits, Setpoint
+from companion.plan.keep_in import KeepIn
 from companion.plan.planners import LawnMower, Planner, PlanProgress, move_towards
 from companion.plan.search_track import SearchTrackParams, inscribed_radius_m
 from companion.plan.world import World
@@ -29,11 +30,12 @@ from companion.vision.camera import BodyPose, CameraModel, ground_footprint
 if TYPE_CHECKING:
     from companion.pipeline import SearchFrame
 
-__all__ = ["REACHED_M", "Carrot", "gate_limits", "hold_setpoint", "search_params",
-           "search_setpoint", "tilt_cos", "vehicle_xy"]
+__all__ = ["REACHED_M", "Carrot", "fence_keep_in", "gate_limits", "hold_setpoint", "ramp",
+           "search_params", "search_setpoint", "tilt_cos", "vehicle_xy"]
 
 FloatArray = NDArray[np.float64]
 REACHED_M = 1.5  # the vehicle is this close to a waypoint: the planner moves on
+_RAMP_SHARE = 0.99  # of the gate's speed limits, so that float rounding never trips them
 
 
 @dataclass(frozen=True)
@@ -76,6 +78,13 @@ def gate_limits(safety: SafetyConfig, origin: LocalNed, home_amsl_m: float) -> G
                       safety.max_speed_v_m_s)
 
 
+def fence_keep_in(safety: SafetyConfig, frame: SearchFrame) -> KeepIn:
+    """The geofence in the search frame, with the clearance the plan keeps inside it."""
+    fence = safety.geofence_latlon
+    easting, northing = frame.utm.geodetic_to_utm(fence[:, 0], fence[:, 1])
+    return KeepIn(frame.from_utm(np.column_stack([easting, northing])), safety.fence_clearance_m)
+
+
 def vehicle_xy(frame: SearchFrame, lat_deg: float, lon_deg: float) -> FloatArray:
     """The vehicle's position in the search frame."""
     e, n = frame.utm.geodetic_to_utm(lat_deg, lon_deg)
@@ -85,6 +94,21 @@ def vehicle_xy(frame: SearchFrame, lat_deg: float, lon_deg: float) -> FloatArray
 def hold_setpoint(vehicle_ned_m: FloatArray, yaw_deg: float) -> Setpoint:
     """Stay where the vehicle is."""
     return Setpoint(vehicle_ned_m[0], vehicle_ned_m[1], vehicle_ned_m[2], yaw_deg)
+
+
+def ramp(wanted: Setpoint, from_ned_m: FloatArray, limits: GateLimits, dt_s: float) -> Setpoint:
+    """The wanted setpoint, or the point a step of just under the gate's speed limits towards
+    it from `from_ned_m` (the last setpoint sent, or the vehicle), horizontally and vertically."""
+    step = np.array([wanted.north_m, wanted.east_m, wanted.down_m]) - from_ned_m
+    max_h_m = _RAMP_SHARE * limits.max_speed_h_m_s * dt_s
+    max_v_m = _RAMP_SHARE * limits.max_speed_v_m_s * dt_s
+    length_h = float(np.hypot(step[0], step[1]))
+    if length_h <= max_h_m and abs(step[2]) <= max_v_m:
+        return wanted
+    step[:2] *= min(1.0, max_h_m / length_h) if length_h > 0.0 else 1.0
+    step[2] = float(np.clip(step[2], -max_v_m, max_v_m))
+    north, east, down = from_ned_m + step
+    return Setpoint(float(north), float(east), float(down), wanted.yaw_deg)
 
 
 def search_setpoint(frame: SearchFrame, origin: LocalNed, target_xy_m: FloatArray,
