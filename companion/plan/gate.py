@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from companion.errors import InputError, field_error
+from companion.plan.keep_in import nearest_on_boundary
 
 FloatArray = NDArray[np.float64]
 
@@ -152,12 +153,8 @@ def _polygon_problem(fence: FloatArray) -> str | None:
 
 def _nearest_on_boundary(fence: FloatArray, ne: FloatArray) -> tuple[FloatArray, float, int, float]:
     """Nearest boundary point, its distance, its edge index and parameter along that edge."""
-    edge = np.roll(fence, -1, axis=0) - fence
-    t = np.clip(np.sum((ne - fence) * edge, axis=1) / np.sum(edge * edge, axis=1), 0.0, 1.0)
-    points = fence + t[:, None] * edge
-    dist = np.hypot(points[:, 0] - ne[0], points[:, 1] - ne[1])
-    i = int(np.argmin(dist))
-    return points[i], float(dist[i]), i, float(t[i])
+    points, dist, edge, t = nearest_on_boundary(ne[None, :], fence)
+    return points[0], float(dist[0]), int(edge[0]), float(t[0])
 
 
 def inside_fence(limits: GateLimits, north_east_m: ArrayLike) -> bool:

@@ -19,13 +19,17 @@ from companion.plan.search_track import inside_polygon
 __all__ = ["KeepIn", "clearance_m"]
 
 FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
 
 _STEP_M = 0.1  # lanes are cut to within this
 _ATTEMPTS = 8  # moves towards the clearance before the best point found is kept
 
 
-def _nearest_on_boundary(xy: FloatArray, polygon_xy: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """(m, 2) nearest boundary points and (m,) their distances, for (m, 2) points."""
+def nearest_on_boundary(
+    xy: FloatArray, polygon_xy: FloatArray
+) -> tuple[FloatArray, FloatArray, IntArray, FloatArray]:
+    """For (m, 2) points: the (m, 2) nearest points on the polygon's boundary, their (m,)
+    distances, the (m,) indices of the edges they lie on and their (m,) parameters along them."""
     a = polygon_xy
     edge = np.roll(a, -1, axis=0) - a
     t = np.clip(np.sum((xy[:, None, :] - a) * edge, axis=2) / np.sum(edge * edge, axis=1),
@@ -34,13 +38,13 @@ def _nearest_on_boundary(xy: FloatArray, polygon_xy: FloatArray) -> tuple[FloatA
     dist = np.hypot(*(points - xy[:, None, :]).transpose(2, 0, 1))
     nearest = np.argmin(dist, axis=1)
     rows = np.arange(len(xy))
-    return points[rows, nearest], dist[rows, nearest]
+    return points[rows, nearest], dist[rows, nearest], nearest, t[rows, nearest]
 
 
 def clearance_m(xy: FloatArray, polygon_xy: FloatArray) -> FloatArray:
     """(m,) distance of each point (m, 2) to the polygon's boundary, negative outside it."""
     points = np.atleast_2d(np.asarray(xy, dtype=np.float64))
-    _, dist = _nearest_on_boundary(points, polygon_xy)
+    _, dist, _, _ = nearest_on_boundary(points, polygon_xy)
     out: FloatArray = np.where(inside_polygon(points, polygon_xy), dist, -dist)
     return out
 
@@ -98,7 +102,7 @@ class KeepIn:
         for _ in range(_ATTEMPTS):
             if best_m >= self.clearance_m - 1e-9:
                 return best
-            near, dist = _nearest_on_boundary(point[None, :], self.polygon_xy)
+            near, dist, _, _ = nearest_on_boundary(point[None, :], self.polygon_xy)
             inside = bool(inside_polygon(point[None, :], self.polygon_xy)[0])
             if dist[0] > 1e-9:
                 inward = (point - near[0]) / dist[0] * (1.0 if inside else -1.0)
