@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 from companion.errors import InputError
 from companion.plan.search_track import inside_polygon
 
-__all__ = ["KeepIn", "clearance_m"]
+__all__ = ["KeepIn", "clearance_m", "nearest_on_boundary"]
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
