@@ -236,6 +236,12 @@ def test_scenario_to_dict_round_trips(data: dict[str, Any]) -> None:
     assert scenario_to_dict(again) == d
 
 
+def test_a_camera_footprint_scenario_round_trips() -> None:
+    for path in sorted((REPO / "sitl" / "scenarios").glob("*.toml")):
+        s = load_scenario(path)
+        assert parse_scenario(scenario_to_dict(s), name=s.name) == s, path.name
+
+
 def test_round_trip_case_values() -> None:
     s = parse_scenario(ROUND_TRIP_CASES[2])
     assert s.targets.count == 3  # omitted: the number of positions

@@ -293,6 +293,8 @@ def scenario_to_dict(s: Scenario) -> dict[str, Any]:
     out = dump_table(s, TOP_KEYS)
     for section, keys in SECTION_KEYS.items():
         out[section] = dump_table(getattr(s, section), keys)
+    if s.sensor.fov == "camera":  # the footprint is derived from [camera] and [vehicle]
+        del out["sensor"]["fov_polygon"]
     return out
 
 
