@@ -63,6 +63,26 @@ def test_with_nothing_known_it_stops_once_the_expected_count_left_is_below_its_t
     assert (progress.looks > 0).mean() >= 0.95 and not (progress.looks > 0).all()
 
 
+def test_when_one_look_is_not_enough_it_looks_again_until_its_stop_rule_holds() -> None:
+    # 6 targets expected and p_D 0.95: one look everywhere leaves 0.3 > 0.05 to find. It used to
+    # hover with no goal once every cell was looked at, its search never ending.
+    params = replace(PARAMS, unseen_targets=6.0, p_detect=0.95, look_s=1e3)
+    planner = make_search_track(WORLD, params)
+    robot, stalled = np.zeros(2), 0
+    progress: SearchProgress | int = 0
+    for k in range(3000):
+        waypoint, progress = planner.next_waypoint(robot, Mixture.empty(), NO_TRACKS, WORLD,
+                                                   progress, float(k))
+        if planner.finished(progress):
+            break
+        stalled += waypoint is None
+        robot = move_towards(robot, waypoint, 1.0)
+    assert isinstance(progress, SearchProgress)
+    assert planner.finished(progress) and progress.left < params.stop_below and stalled == 0
+    # left = 6 (0.05 f1 + 0.0025 (1 - f1)) < 0.05 with f1 the share of cells looked at once
+    assert (progress.looks >= 2).mean() >= 0.85
+
+
 def test_with_nothing_known_it_covers_the_whole_area() -> None:
     planner = make_search_track(WORLD, SearchTrackParams(view_radius_m=25.0, stop_below=0.0))
     path, progress = _fly(planner, Mixture.empty(), 2000, step_m=1.0)

@@ -12,8 +12,9 @@ sure view, or stays in it for another `look_s` seconds). The goals are
 - search: the mixture's components that support no confirmed track (the PHD mass no detection
   has explained), valued by their weight, and the nearest point of a sweep over unseen ground
   (points along lanes as wide as the sure view; the nearest next makes a lawn mower that skips
-  what was seen and resumes where the robot is), valued by the unseen mass that the next few
-  sweep points would look at;
+  what was seen and resumes where the robot is; once every cell was looked at, another pass over
+  the cells out of view whose unseen mass would keep the search going were every cell like them),
+  valued by the unseen mass that the next few sweep points would look at;
 - track: each confirmed track, valued (while the search lasts, at TRACK_WEIGHT_SEARCHING: re-finding
   a counted target is worth less than finding a new one; at nothing once every cell has been
   looked at and only unexplained components keep the search going, so that the robot looks at
@@ -284,11 +285,17 @@ class SearchTrack:
     def _sweep_goals(
         self, robot_xy: FloatArray, memory: SearchProgress, unseen: FloatArray
     ) -> tuple[FloatArray, FloatArray]:
-        """The nearest sweep point with a cell not yet looked at (the first in lawn-mower order
-        among equally near ones; the one being flown to while it has such a cell), valued by the
-        unseen mass that it and the `goals` - 1 next nearest such points would look at (what
-        going on with the sweep finds)."""
-        fresh = memory.looks[self.cell_of_pair] == 0
+        """The nearest sweep point with a fresh cell (the first in lawn-mower order among equally
+        near ones; the one being flown to while it has such a cell), valued by the unseen mass that
+        it and the `goals` - 1 next nearest such points would look at (what going on with the
+        sweep finds). A cell is fresh while no look has reached it; once every cell was looked
+        at, while out of view and holding enough unseen mass to keep the search going were every
+        cell like it (another pass: p_D or the targets expected may call for more than one)."""
+        fresh_cell = memory.looks == 0
+        if not fresh_cell.any():
+            enough = self.params.stop_below / max(self.cells_xy.shape[0], 1)
+            fresh_cell = (unseen > enough) & ~memory.in_view
+        fresh = fresh_cell[self.cell_of_pair]
         n = self.sweep_xy.shape[0]
         count = np.bincount(self.sweep_of_pair[fresh], minlength=n)
         value: FloatArray = np.bincount(
