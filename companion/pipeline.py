@@ -152,7 +152,7 @@ class Pipeline:
         self.frame = SearchFrame.from_config(config.search)
         est = config.estimator
         self.params: SatParams = sat_params(config.filter, est.p_detect, est.clutter_per_scan,
-                                            1.0 / est.rate_hz)
+                                            1.0 / est.rate_hz, self.frame.area_xy_m)
         self.gp = GpPredictor(self.params.gp)
         self.state: SatState | None = None
         self.detector = detector or TagDetector(

@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 from companion.config import load_config
 from companion.pipeline import Pipeline
 from companion.report import confirmed_tracks, score, write_csv, write_geojson
+from companion.sat.fov import prob_in_region
 from companion.sim.scenario import Scenario, load_scenario
 from companion.vision.camera import BodyPose
 from companion.vision.projection import GeoPose
@@ -118,6 +119,19 @@ def test_reports_of_the_tracks(flown: tuple[Flight, Pipeline, list[float]],
         assert (float(lat), float(lon)) == pytest.approx((record.lat_deg, record.lon_deg))
         assert int(row["id"]) == record.id and row["utm_epsg"] == "32632"
         assert record.cov_ee_m2 > 0 and record.first_seen_s <= record.last_seen_s
+
+
+def test_coasting_tracks_are_confined_to_the_search_area_as_in_the_simulator(
+        flown: tuple[Flight, Pipeline, list[float]]) -> None:
+    # The service's estimator had no area: a track coasting out of the field lived on.
+    _, pipeline, _ = flown
+    area_xy = pipeline.frame.area_xy_m
+    centre_xy = area_xy.mean(axis=0)
+    outside_xy = area_xy.max(axis=0) + 50.0
+    region = pipeline.params.tracks.area
+    assert region is not None
+    mass = prob_in_region(np.array([centre_xy, outside_xy]), np.array([np.eye(2)] * 2), region)
+    assert mass == pytest.approx([1.0, 0.0], abs=1e-6)
 
 
 def test_score_matches_one_to_one_within_the_gate() -> None:

@@ -12,9 +12,14 @@ from dataclasses import dataclass
 from enum import StrEnum
 from typing import Literal
 
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import ConvexHull
+
 from companion.keys import Bool, Choice, Float, Int, Key, Pair
 from companion.sat.birth import BirthWeight
 from companion.sat.filter import FilterKind, SatParams
+from companion.sat.fov import ConvexPolygon
 from companion.sat.gp import GpParams
 from companion.sat.motion import TargetMotion
 from companion.sat.predict import LinearModel
@@ -22,6 +27,8 @@ from companion.sat.tracks import TrackParams
 from companion.sat.update import PushMode, PushRule
 
 __all__ = ["FILTER_KEYS", "FilterSpec", "FovKind", "MotionModel", "sat_params"]
+
+FloatArray = NDArray[np.float64]
 
 
 class MotionModel(StrEnum):
@@ -135,11 +142,15 @@ FILTER_KEYS: tuple[Key, ...] = (
 )
 
 
-def sat_params(f: FilterSpec, p_detect: float, clutter_per_scan: float, dt_s: float) -> SatParams:
-    """The filter's parameters from a [filter] table, p(D|F), clutter and the step length.
+def sat_params(f: FilterSpec, p_detect: float, clutter_per_scan: float, dt_s: float,
+               area_xy: FloatArray | None = None) -> SatParams:
+    """The filter's parameters from a [filter] table, p(D|F), clutter, the step length and the
+    search area's (k, 2) polygon (None: targets anywhere).
 
     The linear model's noise per step is at least the targets' motion class's displacement
-    variance over one step, so that a component that no GP predicts can follow a mover.
+    variance over one step, so that a component that no GP predicts can follow a mover. A track
+    coasting alone exists only as far as it lies in the area's convex hull (its polygon, if
+    convex), so that the simulator and the service end tracks that walk out alike.
     """
     motion = TargetMotion(f.target_speed, f.manoeuvre_time)
     step_var_m2 = max(f.process_noise, motion.displacement_var_m2(dt_s))
@@ -162,5 +173,7 @@ def sat_params(f: FilterSpec, p_detect: float, clutter_per_scan: float, dt_s: fl
         gp=GpParams(f.gp_sigma_f, f.gp_lengthscale, f.gp_sigma_n, f.gp_window),
         tracks=TrackParams(f.merge_distance, f.confirm_length, f.track_timeout, f.gp_window,
                            motion, f.confirm_existence, f.drop_existence,
-                           coast_after_s=f.coast_after),
+                           coast_after_s=f.coast_after,
+                           area=None if area_xy is None else ConvexPolygon(
+                               area_xy[ConvexHull(area_xy).vertices])),
     )

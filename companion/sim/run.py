@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -50,13 +50,10 @@ Progress = Callable[[int, int], None]
 def filter_params(s: Scenario) -> SatParams:
     """The filter's parameters from a scenario's [filter] and [sensor] tables; the world is the
     search area."""
-    params = sat_params(
-        s.filter, s.sensor.p_detect, s.sensor.clutter_prob + s.sensor.clutter_rate, s.dt_s
-    )
     width_m, height_m = s.world.size_m
-    area = ConvexPolygon(np.array([[0.0, 0.0], [width_m, 0.0], [width_m, height_m],
-                                   [0.0, height_m]]))
-    return replace(params, tracks=replace(params.tracks, area=area))
+    area_xy = np.array([[0.0, 0.0], [width_m, 0.0], [width_m, height_m], [0.0, height_m]])
+    return sat_params(s.filter, s.sensor.p_detect, s.sensor.clutter_prob + s.sensor.clutter_rate,
+                      s.dt_s, area_xy)
 
 
 def scenario_planner(s: Scenario, world: World) -> Planner:
