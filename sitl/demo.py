@@ -66,6 +66,10 @@ def service_config(scenario: Scenario, sitl: Sitl, out_dir: Path,
                           speed_m_s=r.speed_m_s, lane_spacing_m=r.lane_spacing_m,
                           sweeps=r.sweeps, planner=r.planner, heading_deg=v.heading_deg,
                           stop_when_left=r.stop_when_left)
+    if r.planner == "search-track" and scenario.belief.kind == "empty" and r.unseen_targets >= 1:
+        # what the planner searches for: the targets a user expects before any is seen (with
+        # no initial belief, as the service has none)
+        data["search"]["expected_targets"] = round(r.unseen_targets)
     data["safety"].update(geofence=_latlon(scenario, fence),
                           max_alt_m=max(data["safety"]["max_alt_m"], v.altitude_m + 5.0))
     data["filter"] = scenario_to_dict(scenario)["filter"]

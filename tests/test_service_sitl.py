@@ -271,6 +271,8 @@ def test_the_search_track_planner_finds_every_walker_in_the_walkers_mission(
     sitls: list[Sitl] = []
     result = _fly(scenario, tmp_path, on_sitl=sitls.append)
     assert result.run.mission_state == "done"
+    config_data = json.loads((result.run.out_dir / "config.json").read_text())
+    assert config_data["search"]["expected_targets"] == 6  # robot.unseen_targets
     events = _lines(result.run.out_dir / "events.jsonl")
     texts = [e["text"] for e in events if e["event"] == "command" and e["kind"] == "statustext"]
     # The stop rule usually fires first (about 400-500 s of 540 s); how fast the walkers are
