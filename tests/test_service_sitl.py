@@ -51,6 +51,20 @@ def _assert_every_tag_found(result: DemoResult) -> None:
     assert np.all(gaps.min(axis=1) <= 3.0)  # no confirmed track far from every target
 
 
+def _assert_inside_the_fence(scenario: Scenario, setpoints: list[dict[str, Any]],
+                             flavour: Literal["px4", "ardupilot"]) -> None:
+    """Every setpoint sent, in the autopilot's local frame, lies inside the geofence: the search
+    area grown by FENCE_MARGIN_M, checked in the world frame the scenario defines."""
+    config = autopilot_config(scenario)
+    origin_ne = np.array(config.home_ned) + (
+        np.array(config.ekf_origin_offset_ned) if flavour == "ardupilot" else 0.0)
+    world_ne = np.array([[e["north_m"], e["east_m"]] for e in setpoints]) + origin_ne
+    w_m, h_m = scenario.world.size_m
+    margin = FENCE_MARGIN_M + 1e-6
+    assert np.all((world_ne[:, 0] >= -margin) & (world_ne[:, 0] <= h_m + margin))
+    assert np.all((world_ne[:, 1] >= -margin) & (world_ne[:, 1] <= w_m + margin))
+
+
 def _assert_let_go_at_once(events: list[dict[str, Any]], reported_s: float,
                            released_s: float) -> None:
     """The service let go (released_s) on the first heartbeat that reported the pilot's mode
@@ -73,19 +87,10 @@ def test_field_experiment_mission(flavour: Literal["px4", "ardupilot"], tmp_path
     _assert_every_tag_found(result)
     assert not result.autopilot.armed and result.autopilot.vehicle.on_ground  # it landed
 
-    # Every setpoint sent, in the autopilot's local frame, lies inside the geofence: the search
-    # area grown by FENCE_MARGIN_M, here checked in the world frame the scenario defines.
-    config = autopilot_config(scenario)
-    origin_ne = np.array(config.home_ned) + (
-        np.array(config.ekf_origin_offset_ned) if flavour == "ardupilot" else 0.0)
     setpoints = [e for e in _lines(result.run.out_dir / "events.jsonl")
                  if e["event"] == "setpoint"]
     assert len(setpoints) > 500
-    world_ne = np.array([[e["north_m"], e["east_m"]] for e in setpoints]) + origin_ne
-    w_m, h_m = scenario.world.size_m
-    margin = FENCE_MARGIN_M + 1e-6
-    assert np.all((world_ne[:, 0] >= -margin) & (world_ne[:, 0] <= h_m + margin))
-    assert np.all((world_ne[:, 1] >= -margin) & (world_ne[:, 1] <= w_m + margin))
+    _assert_inside_the_fence(scenario, setpoints, flavour)
     altitudes = -np.array([e["down_m"] for e in setpoints])
     assert np.all((altitudes >= 3.0 - 1e-6) & (altitudes <= 15.0 + 1e-6))  # the safety band
 
@@ -295,11 +300,5 @@ def test_the_search_track_planner_finds_every_walker_in_the_walkers_mission(
 
     counters = json.loads((result.run.out_dir / "summary.json").read_text())["counters"]
     assert counters["setpoints_clamped"] == counters["setpoints_refused"] == 0
-    config = autopilot_config(scenario)
-    setpoints = [e for e in events if e["event"] == "setpoint"]
-    home_ne = np.array(config.home_ned)
-    world_ne = np.array([[e["north_m"], e["east_m"]] for e in setpoints]) + home_ne
-    w_m, h_m = scenario.world.size_m
-    margin = FENCE_MARGIN_M + 1e-6
-    assert np.all((world_ne[:, 0] >= -margin) & (world_ne[:, 0] <= h_m + margin))
-    assert np.all((world_ne[:, 1] >= -margin) & (world_ne[:, 1] <= w_m + margin))
+    _assert_inside_the_fence(scenario, [e for e in events if e["event"] == "setpoint"],
+                             scenario.vehicle.flavour)
