@@ -143,6 +143,28 @@ def test_prior_mass_worn_down_with_no_track_is_still_searched_for_where_the_prio
     assert held.left < 0.1
 
 
+def test_lost_mass_left_on_both_sides_of_a_looked_band_is_flown_to_not_hovered_over() -> None:
+    planner = make_search_track(WORLD, SearchTrackParams(view_radius_m=25.0, unseen_targets=0.0))
+    mean, cov = np.array([[75.0, 75.0]]), np.array([50.0 * np.eye(2)])
+    robot = mean[0].copy()
+    _, progress = planner.next_waypoint(robot, make_mixture([1.0], mean, cov), NO_TRACKS, WORLD,
+                                        0, 0.0)
+    # A north-south band through the prior's mean was looked at and its target not found: what
+    # is left lies west and east of it, and its centroid on the band, where the robot is.
+    band = np.abs(planner.cells_xy[:, 0] - 75.0) < 10.0
+    assert isinstance(progress, SearchProgress)
+    progress = replace(progress, looks=np.where(band, 3, progress.looks))
+    worn = make_mixture([0.01], mean, cov)
+    _, after = planner.next_waypoint(robot, worn, NO_TRACKS, WORLD, progress, 1.0)
+    assert after.left > 0.2
+    for k in range(2, 1000):  # it goes to look at both parts, and its search ends
+        waypoint, after = planner.next_waypoint(robot, worn, NO_TRACKS, WORLD, after, float(k))
+        if waypoint is None:
+            break
+        robot = move_towards(robot, waypoint, 0.5)
+    assert planner.finished(after), f"hovering at {robot} with {after.left:.2f} left"
+
+
 def _one_track(track_id: int, xy: list[float], var_m2: float, seen_t_s: float) -> Tracks:
     """A confirmed track alone at xy with that position variance."""
     empty = Tracks.empty(2, 4)

@@ -215,7 +215,8 @@ class SearchTrack:
         (or more where the targets found so far on the ground seen say the area holds more), and
         each initial component's mass that no confirmed track or component near it holds any more,
         spread as that component was; with the goals of that lost mass: for each initial component
-        that lost some, the centroid of its part no look has found yet, worth that part."""
+        that lost some, the centroid of its part no look has found yet (its heaviest cell when
+        the centroid lies on ground looked at), worth that part."""
         n = self.cells_xy.shape[0]
         found = int(tracks.confirmed.sum())
         seen = float((memory.looks > 0).mean()) if n else 1.0
@@ -229,7 +230,12 @@ class SearchTrack:
         miss += lost_share.sum(axis=1)
         lost_value = lost_share.sum(axis=0)
         some = lost_value > 1e-6
-        lost_xy = (lost_share[:, some].T @ self.cells_xy) / lost_value[some, None]
+        share = lost_share[:, some]
+        lost_xy = (share.T @ self.cells_xy) / lost_value[some, None]
+        # A centroid on ground already looked at lies between parts left on either side of it
+        # (the robot would hover there): the goal is then the part's heaviest cell.
+        on_seen = memory.looks[self._cell_of(lost_xy)] > 0
+        lost_xy[on_seen] = self.cells_xy[np.argmax(share[:, on_seen], axis=0)]
         return miss, lost_xy, lost_value[some]
 
     def _cell_of(self, xy: FloatArray) -> IntArray:
