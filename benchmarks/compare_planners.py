@@ -8,9 +8,9 @@ same scenario, and prints per prior the medians of the time until every target i
 (`t_all_confirmed_s`, its ratio search-track / lawn mower), the means of that time over the seeds
 on which both planners confirmed every target and their ratio (as the study's planners.md), the
 count at the end, the Mahalanobis distance to the closest track, OSPA and GOSPA over the last 20 %
-of steps. `--stationary` tells
-the filter of the stationary scenarios that the targets do not move (filter.target_speed = 0) in
-both planners' runs; without it the filter's default motion class (0.3 m/s) is kept.
+of steps. `--stationary` tells the filter of the stationary scenarios that the targets do not
+move (filter.target_speed = 0) in both planners' runs; without it the filter's default motion
+class (0.3 m/s) is kept.
 """
 
 from __future__ import annotations
