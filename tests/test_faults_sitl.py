@@ -177,8 +177,10 @@ def test_camera_faults_and_a_gps_glitch_lose_no_track_and_confirm_no_ghost(
     result = _fly(tmp_path, faults=plan, stop_after_s=130.0, mission={"end_action": "hold"})
     steps = _lines(result.run.out_dir / "steps.jsonl")
     for reason, (start_s, length_s) in windows.items():
-        during = [s for s in steps if start_s + 0.6 < s["t_s"] < start_s + length_s - 0.1]
         before = [s for s in steps if s["t_s"] < start_s]
+        during = [s for s in steps if start_s + 0.6 < s["t_s"] < start_s + length_s - 0.1]
+        if reason == "frozen frame":  # the repeated picture is new to a pipeline that skipped
+            during = during[1:]  # its original (a loaded machine): blind from the next step on
         assert during, reason
         lost = set(before[-1]["confirmed_ids"]) - set(during[-1]["confirmed_ids"])
         record_figure(f"fault-{reason.split()[0]}", fault=reason, start_s=start_s,
