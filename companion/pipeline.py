@@ -285,7 +285,7 @@ class Pipeline:
 
     def blind(self, boot_t_s: float, reason: str) -> StepRecord:
         """A step without a usable frame: predict only, nobody is erased for being unseen."""
-        r_cov = np.eye(2) * self.config.filter.gp_sigma_n ** 2
+        r_cov = np.eye(2) * self.params.gp.sigma_n_m ** 2
         record = self._advance(boot_t_s, Scan(0.0, None, np.zeros((0, 2)), r_cov, np.zeros(2)),
                                reason, 0, None)
         record.extra["input"] = {"boot_t_s": boot_t_s}

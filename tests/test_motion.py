@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
-from typing import Any
 
 import numpy as np
 import pytest
 
 from companion.errors import InputError
+from companion.keys import read_table
 from companion.sat.motion import TargetMotion, learn_motion
 from companion.sat.params import FILTER_KEYS, FilterSpec, sat_params
 
@@ -57,8 +57,7 @@ def test_bad_motion_class_is_refused(speed: float, manoeuvre: float) -> None:
 
 
 def test_the_linear_models_noise_follows_the_motion_class() -> None:
-    defaults: dict[str, Any] = {key.field: key.default for key in FILTER_KEYS}
-    spec = FilterSpec(**defaults)
+    spec = FilterSpec(**read_table({}, "filter", FILTER_KEYS))
     still = sat_params(replace(spec, target_speed=0.0), 0.98, 0.1, 0.5)
     assert still.q_m2_per_s == pytest.approx(spec.process_noise / 0.5)
     runner = sat_params(replace(spec, target_speed=2.0), 0.98, 0.1, 0.5)

@@ -24,6 +24,7 @@ from companion.sat.gp import GpParams
 from companion.sat.params import FilterSpec
 from companion.sim import scenario as sc
 from companion.sim import scenario_keys as sk
+from companion.sim.run import filter_params
 from companion.sim.scenario import (
     BeliefComponent,
     BeliefSpec,
@@ -149,8 +150,14 @@ def test_empty_file_and_empty_tables_give_the_documented_defaults() -> None:
     f = empty_tables.filter
     gp = GpParams()
     assert (f.gp_sigma_f, f.gp_lengthscale, f.gp_sigma_n, f.gp_window) == (
-        gp.sigma_f_m, gp.lengthscale_s, gp.sigma_n_m, gp.window,
+        gp.sigma_f_m, gp.lengthscale_s, None, gp.window,
     )
+    # unset, the GP's observation noise is the sensor's (learn-gp finds it there)
+    assert filter_params(empty_tables).gp.sigma_n_m == empty_tables.sensor.noise_std_m == 1.0
+    noisy = parse_scenario({"sensor": {"noise_std": 2.0}}, name="x")
+    assert filter_params(noisy).gp.sigma_n_m == 2.0
+    told = parse_scenario({"sensor": {"noise_std": 2.0}, "filter": {"gp_sigma_n": 0.4}}, name="x")
+    assert filter_params(told).gp.sigma_n_m == 0.4
     assert (f.birth, f.linear_model, f.velocity_variance, f.track_timeout) == (
         "adaptive", "cp", 1.0, 30.0,
     )

@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import ConvexHull
 
-from companion.keys import Bool, Choice, Float, Int, Key, Pair
+from companion.keys import Bool, Choice, Derived, Float, Int, Key, Pair
 from companion.sat.birth import BirthWeight
 from companion.sat.filter import FilterKind, SatParams
 from companion.sat.fov import ConvexPolygon
@@ -68,7 +68,7 @@ class FilterSpec:
     velocity_variance: float  # m^2/s^2
     gp_sigma_f: float  # m
     gp_lengthscale: float  # s
-    gp_sigma_n: float  # m
+    gp_sigma_n: float | None  # m; None: the measurement noise std
     gp_window: int  # points
     track_timeout: float  # s
     target_speed: float  # m/s
@@ -120,8 +120,11 @@ FILTER_KEYS: tuple[Key, ...] = (
         "GP signal std, metres", project=True),
     Key("gp_lengthscale", Float(gt=0), _GP.lengthscale_s,
         "GP kernel length scale, seconds", project=True),
-    Key("gp_sigma_n", Float(gt=0), _GP.sigma_n_m,
-        "GP observation noise std, metres", project=True),
+    Key("gp_sigma_n", Float(gt=0),
+        Derived(f"the measurement noise: `sensor.noise_std` in a scenario, {_GP.sigma_n_m:g} in "
+                "the service"),
+        "GP observation noise std, metres: the noise of the positions a track's GP regresses on",
+        project=True),
     Key("gp_window", Int(ge=2), _GP.window,
         "a track's most recent detected positions the GP regresses on", project=True),
     Key("track_timeout", Float(gt=0), 30.0,
@@ -143,9 +146,15 @@ FILTER_KEYS: tuple[Key, ...] = (
 
 
 def sat_params(f: FilterSpec, p_detect: float, clutter_per_scan: float, dt_s: float,
-               area_xy: FloatArray | None = None) -> SatParams:
-    """The filter's parameters from a [filter] table, p(D|F), clutter, the step length and the
-    search area's (k, 2) polygon (None: targets anywhere).
+               area_xy: FloatArray | None = None,
+               noise_std_m: float = _GP.sigma_n_m) -> SatParams:
+    """The filter's parameters from a [filter] table, p(D|F), clutter, the step length, the
+    search area's (k, 2) polygon (None: targets anywhere) and the measurement noise std.
+
+    The GP's observation noise is the measurement noise unless [filter] sets it: learned
+    values match it (learn-gp gives 0.9965 m on the paper's 1 m sensor), and a smaller one
+    makes a track's GP follow the noise of its detections, its mean off a standing target by
+    more than its covariance says.
 
     The linear model's noise per step is at least the targets' motion class's displacement
     variance over one step, so that a component that no GP predicts can follow a mover. A track
@@ -170,7 +179,8 @@ def sat_params(f: FilterSpec, p_detect: float, clutter_per_scan: float, dt_s: fl
         birth=BirthWeight(f.birth),
         birth_weight=f.birth_weight,
         velocity_var_m2_s2=f.velocity_variance,
-        gp=GpParams(f.gp_sigma_f, f.gp_lengthscale, f.gp_sigma_n, f.gp_window),
+        gp=GpParams(f.gp_sigma_f, f.gp_lengthscale,
+                    noise_std_m if f.gp_sigma_n is None else f.gp_sigma_n, f.gp_window),
         tracks=TrackParams(f.merge_distance, f.confirm_length, f.track_timeout, f.gp_window,
                            motion, f.confirm_existence, f.drop_existence,
                            coast_after_s=f.coast_after,

@@ -53,7 +53,7 @@ def filter_params(s: Scenario) -> SatParams:
     width_m, height_m = s.world.size_m
     area_xy = np.array([[0.0, 0.0], [width_m, 0.0], [width_m, height_m], [0.0, height_m]])
     return sat_params(s.filter, s.sensor.p_detect, s.sensor.clutter_prob + s.sensor.clutter_rate,
-                      s.dt_s, area_xy)
+                      s.dt_s, area_xy, s.sensor.noise_std_m)
 
 
 def scenario_planner(s: Scenario, world: World) -> Planner:
