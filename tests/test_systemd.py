@@ -36,7 +36,8 @@ def test_the_unit_file_verifies(tmp_path: Path) -> None:
     text = UNIT.read_text()
     for line in ("Type=notify", "NotifyAccess=main", "Restart=on-failure", "User=companion",
                  "NoNewPrivileges=yes", "ProtectSystem=strict", "ProtectHome=yes",
-                 "PrivateTmp=yes", "DevicePolicy=closed", "After=network-online.target"):
+                 "PrivateTmp=yes", "DevicePolicy=closed", "After=network-online.target",
+                 "Nice=-5", "CPUWeight=400", "RestrictRealtime=yes"):
         assert f"\n{line}\n" in text, line
     assert "WatchdogSec=" in text and "DeviceAllow=char-video4linux rw" in text
     # systemd-analyze checks that ExecStart's program exists: point it at this installation.
