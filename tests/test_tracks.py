@@ -210,6 +210,32 @@ def test_misses_in_view_end_a_coasting_track_and_a_redetection_continues_it() ->
     assert again.seen_t_s.tolist() == [63.0]
 
 
+def test_a_long_coasting_track_leaves_a_point_it_explains_worse_than_clutter_to_a_new_track() -> (
+        None):
+    """Eq. coast_gate: the grown gate takes an estimate where N(m_e; m_t, P_t + P_e) > kappa."""
+    walker, _ = _confirmed_walker()
+    tracks, _ = maintain(walker, Mixture.empty(), NONE, np.zeros(0, dtype=bool), 3.0, WALKERS)
+    assert tracks.alone.tolist() == [True]
+    t_s = 600.0  # unseen for ten minutes: a Gaussian some 60 m wide per axis
+    sd = float(np.sqrt(grown_covs(tracks, t_s, WALKERS.motion)[0, 0, 0]))
+    assert sd > 40.0
+    point = _mix([[0.5 * sd, 0.0]], [0.9])  # well inside its gate (gate_sq = 10)
+    density = np.exp(-0.5 * 0.25 * sd**2 / (sd**2 + 0.25)) / (2.0 * np.pi * (sd**2 + 0.25))
+
+    def after(clutter_per_m2: float) -> tuple[Tracks, Mixture]:
+        return maintain(tracks, point, np.array([0]), np.array([True]), t_s, WALKERS,
+                        _evidence([0.5 * sd, 0.0], 25.0, clutter_per_m2))
+
+    taken, labelled = after(0.5 * density)
+    assert taken.ids.tolist() == [0] and labelled.labels.tolist() == [0]
+    assert taken.alone.tolist() == [False]
+    left, labelled = after(2.0 * density)
+    assert left.ids.tolist() == [0, 1], "the point starts a tentative track of its own"
+    assert labelled.labels.tolist() == [1]
+    assert left.alone.tolist() == [True, False]
+    assert left.seen_t_s[0] == tracks.seen_t_s[0], "the walker's track was not seen there"
+
+
 def test_clutter_cannot_confirm_a_track_that_the_frames_do_not_support() -> None:
     """Three detections confirm a track when false alarms are rare, not in heavy clutter."""
     def three_hits(clutter_per_m2: float, weight: float) -> Tracks:

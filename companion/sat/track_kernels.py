@@ -38,6 +38,14 @@ def _gate_sq(mt: FloatArray, pt: FloatArray, me: FloatArray, pe: FloatArray) -> 
 
 
 @njit(cache=True, nogil=True)
+def _density(d_sq: float, pt: FloatArray, pe: FloatArray) -> float:
+    """N(m_e; m_t, P_t + P_e) over the position block, from its squared distance d_sq."""
+    det = (pt[0, 0] + pe[0, 0]) * (pt[1, 1] + pe[1, 1]) - (pt[0, 1] + pe[0, 1]) * (
+        pt[1, 0] + pe[1, 0])
+    return math.exp(-0.5 * d_sq) / (2.0 * math.pi * math.sqrt(det))
+
+
+@njit(cache=True, nogil=True)
 def associate(
     track_ids: IntArray,
     track_means: FloatArray,
@@ -46,12 +54,17 @@ def associate(
     est_means: FloatArray,
     est_covs: FloatArray,
     gate_sq: float,
+    alone: BoolArray,
+    clutter_per_m2: float,
 ) -> IntArray:
     """For each estimate, the row of the track it continues, or -1 (track ids sorted).
 
     1. An estimate continues the track its label names; of two with one label, the closer
        (gate distance, ties by estimate order). 2. The rest take the unclaimed tracks they
-    gate with (distance <= gate_sq), nearest pairs first (ties by track row, then estimate).
+    gate with (distance <= gate_sq), nearest pairs first (ties by track row, then estimate); a
+    track coasting alone (`alone`, on its grown covariance) gates only with an estimate it
+    explains better than clutter does, N(m_e; m_t, P_t + P_e) > clutter_per_m2 (Eq.
+    coast_gate).
     """
     n_tracks = track_ids.shape[0]
     n_est = est_labels.shape[0]
@@ -82,7 +95,8 @@ def associate(
             continue
         for e in free:
             d = _gate_sq(track_means[r], track_covs[r], est_means[e], est_covs[e])
-            if d <= gate_sq:
+            if d <= gate_sq and (not alone[r] or _density(  # Eq. coast_gate
+                    d, track_covs[r], est_covs[e]) > clutter_per_m2):
                 pair_t[n_pairs] = r
                 pair_e[n_pairs] = e
                 pair_d[n_pairs] = d
@@ -115,7 +129,8 @@ def _hold(
 def support_of(
     track_ids: IntArray, track_means: FloatArray, track_covs: FloatArray, confirmed: BoolArray,
     moving: bool, est_rows: IntArray, labels: IntArray, means: FloatArray, covs: FloatArray,
-    weights: FloatArray, detected: BoolArray, gate_sq: float,
+    weights: FloatArray, detected: BoolArray, gate_sq: float, alone: BoolArray,
+    clutter_per_m2: float,
 ) -> tuple[IntArray, BoolArray, IntArray, IntArray, BoolArray, IntArray]:
     """Which component supports each track this step, from the estimates (mixture rows est_rows)
     and the mixture's labels: (supported_by (T,) mixture row or -1, hit (T,) supported by a
@@ -130,7 +145,7 @@ def support_of(
     n_tracks = track_ids.shape[0]
     assigned = associate(  # Eq. gate, Panta et al.'s association
         track_ids, track_means, track_covs, labels[est_rows], means[est_rows], covs[est_rows],
-        gate_sq,
+        gate_sq, alone, clutter_per_m2,
     )
     supported_by = np.full(n_tracks, -1, dtype=np.int64)
     hit = np.zeros(n_tracks, dtype=np.bool_)

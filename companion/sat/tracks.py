@@ -320,6 +320,7 @@ def maintain(
     supported_by, hit, rows, missed, coasting, new_rows = kernels.support_of(
         gating.ids, gating.means, gating.covs, tracks.confirmed, params.motion.speed_m_s > 0.0,
         est_rows, mix.labels, mix.means, mix.covs, mix.weights, detected, params.gate_sq,
+        tracks.alone, 0.0 if evidence is None else evidence.clutter_per_m2,
     )
     updated, alive, labels, n_alive, n_new, decided = _support(
         tracks, rows, missed, supported_by, hit, coasting, mix, t_s, params, evidence
