@@ -171,6 +171,96 @@ def test_prediction_invariant_to_position_offset_and_time_shift(
     assert var2 == var
 
 
+def _textbook_trend(
+    params: GpParams, t: FloatArray, y: FloatArray, t_star: float
+) -> tuple[FloatArray, FloatArray]:
+    """Eqs. gp_trend, gp_prediction written out: the moving and standing models' restricted
+    likelihoods (the intercept integrated out) per axis, y ~ N(a 1, Ky + sb2 r r^T) against
+    N(a 1, Ky), weigh the moving model's GLS trend against the window's mean; (mean, velocity)."""
+    sf2, lam, sn2 = params.sigma_f_m**2, params.lengthscale_s, params.sigma_n_m**2
+    sb2 = params.slope_sd_m_s**2
+    rel = t - t[-1]
+    ky = sf2 * np.exp(-0.5 * ((t[:, None] - t[None, :]) / lam) ** 2) + sn2 * np.eye(len(t))
+    ones = np.ones(len(t))
+
+    def log_restricted(cov: FloatArray, v: FloatArray) -> float:
+        inv = np.linalg.inv(cov)
+        s = ones @ inv @ ones
+        p = inv - np.outer(inv @ ones, ones @ inv) / s
+        return float(-0.5 * v @ p @ v - 0.5 * np.linalg.slogdet(cov)[1] - 0.5 * math.log(s))
+
+    yc = y - y.mean(axis=0)  # the restricted likelihood ignores offsets: centred for round-off
+    log_bf = sum(
+        log_restricted(ky + sb2 * np.outer(rel, rel), yc[:, d]) - log_restricted(ky, yc[:, d])
+        for d in range(y.shape[1])
+    )
+    p_moving = 1.0 / (1.0 + math.exp(-log_bf))
+    h = np.column_stack((ones, rel))
+    ky_inv = np.linalg.inv(ky)
+    coef = np.linalg.solve(h.T @ ky_inv @ h + np.diag([0.0, 1.0 / sb2]), h.T @ ky_inv @ y)
+    a = p_moving * coef[0] + (1.0 - p_moving) * y.mean(axis=0)
+    b = p_moving * coef[1]
+    k_star = sf2 * np.exp(-0.5 * ((t_star - t) / lam) ** 2)
+    beta = ky_inv @ (y - a - rel[:, None] * b)
+    mean = a + b * min(t_star - t[-1], 0.0) + k_star @ beta
+    return mean, b + (k_star * (t - t_star) / lam**2) @ beta
+
+
+@pytest.mark.parametrize("speed_m_s", [0.0, 0.02, 0.3])
+def test_trend_matches_its_textbook_form(speed_m_s: float) -> None:
+    rng = np.random.default_rng(3)
+    params = GpParams(sigma_f_m=2.0, lengthscale_s=40.0, sigma_n_m=1.0, window=30,
+                      slope_sd_m_s=0.2)
+    t = np.cumsum(rng.uniform(0.5, 1.5, 30))
+    y = np.array([500000.0, 4000000.0]) + np.outer(t, [speed_m_s, -speed_m_s])
+    y += rng.normal(size=y.shape)
+    for t_star in (t[20], t[-1], t[-1] + 1.0, t[-1] + 30.0):
+        want_mean, want_vel = _textbook_trend(params, t, y, float(t_star))
+        mean, _, vel = gp_predict(params, t, y, float(t_star))
+        np.testing.assert_allclose(mean, want_mean, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(vel, want_vel, rtol=0, atol=1e-9)
+        fitted, _, fitted_vel = GpPredictor(params).predict(t[None], y[None], [30], float(t_star))
+        np.testing.assert_allclose(fitted[0], mean, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(fitted_vel[0], vel, rtol=0, atol=1e-9)
+
+
+def _walker_nowcast_errors(slope_sd_m_s: float, speed_m_s: float) -> FloatArray:
+    """Errors (m) one second past the newest of 30 detections (1 m noise, 1 Hz) of targets going
+    straight at speed_m_s, 200 seeded draws."""
+    rng = np.random.default_rng(8)
+    params = GpParams(sigma_n_m=1.0, slope_sd_m_s=slope_sd_m_s)
+    t = np.arange(30.0)
+    errors = []
+    for _ in range(200):
+        heading = rng.uniform(0.0, 2.0 * math.pi)
+        velocity = speed_m_s * np.array([math.cos(heading), math.sin(heading)])
+        y = np.outer(t, velocity) + rng.normal(size=(30, 2))
+        mean, _, _ = gp_predict(params, t, y, 30.0)
+        errors.append(float(np.linalg.norm(mean - 30.0 * velocity)))
+    return np.array(errors)
+
+
+def test_trend_takes_a_walkers_lag_out_and_leaves_a_standing_target_alone() -> None:
+    sd = 0.3 / math.sqrt(2.0)  # the default motion class, as the filter sets it
+    walker_se, walker_trend = _walker_nowcast_errors(0.0, 0.5), _walker_nowcast_errors(sd, 0.5)
+    assert np.median(walker_trend) < 0.6 * np.median(walker_se)
+    still_se, still_trend = _walker_nowcast_errors(0.0, 0.0), _walker_nowcast_errors(sd, 0.0)
+    assert np.median(still_trend) < 1.1 * np.median(still_se)
+
+
+def test_trend_is_held_past_the_newest_point() -> None:
+    rng = np.random.default_rng(4)
+    params = GpParams(sigma_n_m=0.5, slope_sd_m_s=0.5)
+    t = np.arange(30.0)
+    y = np.outer(t, [0.4, 0.1]) + rng.normal(scale=0.5, size=(30, 2))
+    far, _, far_vel = gp_predict(params, t, y, 29.0 + 500.0)  # the SE part has died away
+    farther, _, farther_vel = gp_predict(params, t, y, 29.0 + 5000.0)
+    np.testing.assert_allclose(far, farther, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(far, y[-1], atol=1.0)  # where the walker was last seen
+    np.testing.assert_allclose(far_vel, [0.4, 0.1], atol=0.05)  # its velocity is still known
+    np.testing.assert_array_equal(far_vel, farther_vel)
+
+
 # ---------------------------------------------------------------------------------------------
 # GpPredictor
 # ---------------------------------------------------------------------------------------------
@@ -336,6 +426,9 @@ def test_reml_is_the_limit_of_a_vague_constant_mean() -> None:
         ("window", 1, "window"),
         ("window", 2.5, "window"),
         ("window", True, "window"),
+        ("slope_sd_m_s", -0.1, "slope_sd_m_s"),
+        ("slope_sd_m_s", math.nan, "slope_sd_m_s"),
+        ("slope_sd_m_s", "0.2", "slope_sd_m_s"),
     ],
 )
 def test_bad_params_name_the_parameter(field: str, value: object, name: str) -> None:

@@ -68,6 +68,13 @@ def test_the_linear_models_noise_follows_the_motion_class() -> None:
     assert runner.q_m2_per_s > 0.9
 
 
+def test_the_gp_trend_takes_the_classs_velocity_as_its_prior() -> None:
+    spec = FilterSpec(**read_table({}, "filter", FILTER_KEYS))
+    assert sat_params(replace(spec, target_speed=0.0), 0.98, 0.1, 1.0).gp.slope_sd_m_s == 0.0
+    walker = sat_params(replace(spec, target_speed=0.5), 0.98, 0.1, 1.0)
+    assert walker.gp.slope_sd_m_s == pytest.approx(0.5 / math.sqrt(2.0))
+
+
 def test_the_class_is_learned_from_simulated_walkers() -> None:
     """Walkers at 0.3 m/s turning every 200 s, seen every second with 1 m noise: the speed
     within 10 % and the time between manoeuvres within 25 %."""

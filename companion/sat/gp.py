@@ -6,17 +6,32 @@ Model, per axis d (axes are independent GPs sharing one set of hyperparameters):
     y_i = mu + f(t_i) + e_i,   f ~ GP(0, K),   e_i ~ N(0, sigma_n^2),
     K(k, k') = sigma_f^2 exp(-0.5 ((k - k') / lambda)^2)                      # Eq. gp_kernel
 
-where mu is a constant prior mean, taken as the mean of the window's points, so that UTM-sized
-coordinates (500000 m, 4e6 m) are not shrunk towards 0. With Ky = K(K, K) + sigma_n^2 I and the
+where mu is the prior mean, so that UTM-sized coordinates (500000 m, 4e6 m) are not shrunk
+towards 0: a constant, the mean of the window's points; or, when the targets move
+(slope_sd_m_s > 0), a trend through the window's newest time t_n, held past it:
+
+    mu(t) = a + b min(t - t_n, 0)                                              # Eq. gp_trend
+
+averaged over two models of the target: moving, with a flat prior on a and N(0, slope_sd^2) on
+each axis of the velocity b, both by generalised least squares (Rasmussen & Williams 2006, Sec.
+2.7: [a, b] = (H^T Ky^{-1} H + diag(0, slope_sd^-2))^{-1} H^T Ky^{-1} M, H = [1, t_i - t_n]);
+and standing, b = 0 and a the window's mean; each weighted by its posterior probability at even
+prior odds (the data's evidence on b alone). The SE kernel alone reverts to the window's mean,
+so a track on a walker lags behind it (0.5 m/s, 30 detections with 1 m noise: 1.6 m one second
+past the newest; the trend: 0.9 m); a standing target's window shows no slope and keeps the
+constant mean. The trend is not extrapolated: a straight line run on past the last detection
+carried coasting tracks away from their walkers (docs/estimator.md); the motion class's term
+(companion.sat.motion) grows the covariance instead. With Ky = K(K, K) + sigma_n^2 I and the
 weight vector alpha = Ky^{-1} K(K, k) (which depends only on the times, not on the positions):
 
-    mean      m_k   = mu + alpha^T (M - mu)                                    # Eq. gp_prediction
-    velocity  dm/dk = (Ky^{-1} dK(K, k)/dk)^T (M - mu)
+    mean      m_k   = mu(k) + alpha^T (M - mu)                                 # Eq. gp_prediction
+    velocity  v     = b + (Ky^{-1} dK(K, k)/dk)^T (M - mu)    (dm/dk up to t_n; b held past it)
     variance  v_k   = sigma_f^2 - K(k, K) alpha
 
 v_k is the variance of the latent position f(k) (no sigma_n^2 added, no term for the uncertainty of
 mu): it is the position uncertainty the filter's covariance grows by, and measurement noise enters
-later through the update's R. Times are handled relative to the prediction time and rounded to
+later through the update's R (the motion class's term, companion.sat.motion, covers an unseen
+target's manoeuvres). Times are handled relative to the prediction time and rounded to
 1 ns, so that equal relative timings give bit-identical weights (and can share a cache entry).
 """
 
@@ -57,12 +72,12 @@ _SN_BOUNDS_REL = (1e-3, 1e2)
 _LAMBDA_BOUNDS_REL = (2.0, 1e2)  # x median time step (low), x longest chunk span (high)
 
 
-def _check_positive(name: str, value: float) -> None:
-    """InputError naming the parameter unless value is a finite number > 0."""
+def _check_positive(name: str, value: float, zero: bool = False) -> None:
+    """InputError naming the parameter unless value is a finite number > 0 (>= 0 with zero)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise InputError(f"GP {name} must be a number, got {value!r}")
-    if not math.isfinite(value) or value <= 0.0:
-        raise InputError(f"GP {name} must be finite and > 0, got {value!r}")
+    if not math.isfinite(value) or value < 0.0 or (value == 0.0 and not zero):
+        raise InputError(f"GP {name} must be finite and {'>=' if zero else '>'} 0, got {value!r}")
 
 
 @dataclass(frozen=True, slots=True)
@@ -87,12 +102,17 @@ class GpParams:
     (sigma_f, lambda, window) grid. Their weakness is mean reversion: a straight leg at speed v is
     predicted ~0.75 v x 1 s behind one step ahead, and the velocity ~20 % low; for faster targets
     learn the parameters. learn_gp_params replaces these by values fitted to recorded tracks.
+
+    slope_sd_m_s > 0 replaces the constant prior mean by a trend whose velocity has that prior
+    std per axis (see the module's docstring); the filter sets it from the targets' motion
+    class, and 0 (the default here) keeps the constant mean.
     """
 
     sigma_f_m: float = 2.0
     lengthscale_s: float = 40.0
     sigma_n_m: float = 0.3
     window: int = 30
+    slope_sd_m_s: float = 0.0
 
     def __post_init__(self) -> None:
         _check_positive("sigma_f_m", self.sigma_f_m)
@@ -102,6 +122,7 @@ class GpParams:
             raise InputError(f"GP window must be an integer, got {self.window!r}")
         if self.window < 2:
             raise InputError(f"GP window must be >= 2, got {self.window!r}")
+        _check_positive("slope_sd_m_s", self.slope_sd_m_s, zero=True)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -142,21 +163,19 @@ def _weights(params: GpParams, rel_s: FloatArray) -> tuple[FloatArray, FloatArra
     return alpha, alpha_vel, np.maximum(var, _VAR_FLOOR_REL * sf2)
 
 
-def _combine(
-    y: FloatArray,
-    mask: npt.NDArray[np.bool_],
-    m: IntArray,
-    alpha: FloatArray,
-    alpha_vel: FloatArray,
-) -> tuple[FloatArray, FloatArray]:
-    """Mean (T, d) and velocity (T, d) from right-aligned windows y (T, W, d) and padded weights."""
-    mask3 = mask[:, :, None]
-    y0 = np.where(mask3, y, 0.0)
-    mu = y0.sum(axis=1) / m[:, None]  # constant prior mean: the window's mean
-    yc = np.where(mask3, y0 - mu[:, None, :], 0.0)
-    mean = mu + np.einsum("tw,twd->td", alpha, yc)  # Eq. gp_prediction on the centred data
-    vel = np.einsum("tw,twd->td", alpha_vel, yc)
-    return mean, vel
+def _trend(params: GpParams, rel_s: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The prior mean's intercept a (d,) at rel_s = 0 and slope b (d,) for one window of n times
+    rel_s (n,) [s] and positions y (n, d) [m]: the window's mean and 0 when slope_sd_m_s = 0,
+    else the generalised least-squares trend (see the module's docstring)."""
+    if params.slope_sd_m_s == 0.0:
+        return y.mean(axis=0), np.zeros(y.shape[1])
+    diff = (rel_s[:, None] - rel_s[None, :]) / params.lengthscale_s
+    ky = params.sigma_f_m**2 * np.exp(-0.5 * diff * diff)  # Eq. gp_kernel
+    ky[np.diag_indices(rel_s.size)] += params.sigma_n_m**2
+    out = np.empty(2 * y.shape[1])
+    ky_inv = np.asarray(np.linalg.inv(ky), dtype=np.float64)
+    _trend_kernel(ky_inv, rel_s, np.ascontiguousarray(y), params.slope_sd_m_s**2, out)
+    return out[: y.shape[1]], out[y.shape[1] :]
 
 
 def _check_t_star(t_star_s: float) -> float:
@@ -203,9 +222,12 @@ def gp_predict(
     _check_rel(rel)
     rel_q, _ = _quantise_rel(rel)
     alpha, alpha_vel, var = _weights(params, rel_q[None, :])
-    mask = np.ones((1, n), dtype=np.bool_)
-    mean, vel = _combine(y_w[None, :, :], mask, np.array([n], dtype=np.int64), alpha, alpha_vel)
-    return mean[0], float(var[0]), vel[0]
+    from_newest = rel_q - rel_q[-1]
+    intercept, slope = _trend(params, from_newest, y_w)
+    resid = y_w - intercept - from_newest[:, None] * slope  # M - mu
+    held = min(-rel_q[-1], 0.0)  # Eq. gp_trend: t_star - t_n, held at 0 past the newest point
+    mean = intercept + held * slope + alpha[0] @ resid  # Eq. gp_prediction
+    return mean, float(var[0]), slope + alpha_vel[0] @ resid
 
 
 # ---------------------------------------------------------------------------------------------
@@ -218,10 +240,12 @@ def gp_predict(
 class GpFit:
     """What prediction needs of T right-aligned windows, computed once per window.
 
-    mu (T, d) is the window's mean, beta (T, W, d) = Ky^-1 (y - mu) and ky_inv (T, W, W) =
-    Ky^-1 with Ky = K(K, K) + sigma_n^2 I, all zero outside a row's last count[i] columns; then
-    at any time t*, with k = K(t*, K): mean = mu + k^T beta (Eq. gp_prediction), velocity =
-    (dk/dt*)^T beta and variance = sigma_f^2 - k^T Ky^-1 k, a few products per row.
+    mu (T, 2d) is the prior mean's intercept a (the first d columns) and slope b (the last d,
+    zero for a constant mean) at the window's newest time t_n, beta (T, W, d) = Ky^-1 (y -
+    mu(K)) and ky_inv (T, W, W) = Ky^-1 with Ky = K(K, K) + sigma_n^2 I, all zero outside a
+    row's last count[i] columns; then at any time t*, with k = K(t*, K): mean = a + b min(t* -
+    t_n, 0) + k^T beta (Eqs. gp_trend, gp_prediction), velocity = b + (dk/dt*)^T beta and
+    variance = sigma_f^2 - k^T Ky^-1 k, a few products per row.
     """
 
     t_s: FloatArray  # (T, W)
@@ -236,7 +260,7 @@ class GpFit:
         return GpFit(
             np.zeros((0, width)),
             np.zeros(0, dtype=np.int64),
-            np.zeros((0, dim)),
+            np.zeros((0, 2 * dim)),
             np.zeros((0, width, dim)),
             np.zeros((0, width, width)),
         )
@@ -250,7 +274,7 @@ def predict_fit(
     is an array of k times."""
     times = np.atleast_1d(np.asarray(t_star_s, dtype=np.float64))
     picked = np.arange(fit.count.shape[0]) if rows is None else rows
-    dim = fit.mu.shape[1]
+    dim = fit.beta.shape[2]
     mean = np.empty((times.size, picked.size, dim))
     var = np.empty((times.size, picked.size))
     velocity = np.empty((times.size, picked.size, dim))
@@ -278,8 +302,9 @@ def gp_predict_rows(  # pragma: no cover - compiled; tested through predict_fit
     var: FloatArray,
     velocity: FloatArray,
 ) -> None:
-    """mean = mu + k^T beta (Eq. gp_prediction), velocity = (dk/dt*)^T beta,
-    var = sigma_f^2 - k^T Ky^-1 k, with k = K(t*, K) (Eq. gp_kernel), per row and time."""
+    """mean = mu(t*) + k^T beta (Eq. gp_prediction), velocity = b + (dk/dt*)^T beta,
+    var = sigma_f^2 - k^T Ky^-1 k, with k = K(t*, K) (Eq. gp_kernel), per row and time (see
+    GpFit)."""
     width, dim = beta.shape[1], beta.shape[2]
     k = np.empty((times.shape[0], width))
     floor = _VAR_FLOOR_REL * sf2
@@ -299,8 +324,9 @@ def gp_predict_rows(  # pragma: no cover - compiled; tested through predict_fit
                 for w in range(first, width):
                     m += k[a, w] * beta[r, w, c]
                     v += k[a, w] * (t_s[r, w] - times[a]) / (lam * lam) * beta[r, w, c]
-                mean[a, out, c] = m
-                velocity[a, out, c] = v
+                slope = mu[r, dim + c]  # Eq. gp_trend: held past the newest point
+                mean[a, out, c] = m + slope * min(times[a] - t_s[r, width - 1], 0.0)
+                velocity[a, out, c] = v + slope
         for a in range(0, times.shape[0], 2):  # two times at a time, reading Ky^-1 once
             b = min(a + 1, times.shape[0] - 1)
             quad_a, quad_b = _quad_forms(ky_inv[r], k[a], k[b], first)
@@ -361,6 +387,7 @@ def _fit_kernel(  # pragma: no cover - compiled; tested through GpPredictor.fit
     sf2: float,
     lam: float,
     sn2: float,
+    sb2: float,
     keys: IntArray,
     lengths: IntArray,
     invs: FloatArray,
@@ -371,7 +398,8 @@ def _fit_kernel(  # pragma: no cover - compiled; tested through GpPredictor.fit
     ky_inv: FloatArray,
 ) -> bool:
     """Fit the windows `rows` of t_s (T, W) [s], y (T, W, d) [m] with counts[i] valid points
-    into those rows of mu (T, d), beta (T, W, d) and ky_inv (T, W, W), in place (see GpFit);
+    into those rows of mu (T, 2d), beta (T, W, d) and ky_inv (T, W, W), in place (see GpFit),
+    with the trend's slope prior variance sb2 (0: a constant mean);
     False if a Ky is not positive definite to working precision.
 
     A row's last c = min(counts[i], window) times are taken as offsets from its newest point,
@@ -419,19 +447,75 @@ def _fit_kernel(  # pragma: no cover - compiled; tested through GpPredictor.fit
         if slot >= 0:
             memo[1] += 1
             stamps[slot] = memo[1]
-        for d in range(y.shape[2]):
-            total = 0.0
-            for w in range(first, width):
-                total += y[i, w, d]
-            mu[i, d] = total / c  # constant prior mean: the window's mean
+        dim = y.shape[2]
+        if sb2 > 0.0:
+            _trend_kernel(block, rel_q[:c], y[i, first:], sb2, mu[i])
+        else:
+            for d in range(dim):
+                total = 0.0
+                for w in range(first, width):
+                    total += y[i, w, d]
+                mu[i, d] = total / c  # constant prior mean: the window's mean
+                mu[i, dim + d] = 0.0
         for w in range(width):
-            for d in range(y.shape[2]):
+            for d in range(dim):
                 acc = 0.0
                 if w >= first:
                     for v in range(first, width):
-                        acc += ky_inv[i, w, v] * (y[i, v, d] - mu[i, d])
+                        prior = mu[i, d] + mu[i, dim + d] * rel_q[v - first]
+                        acc += ky_inv[i, w, v] * (y[i, v, d] - prior)
                 beta[i, w, d] = acc  # Ky^-1 (y - mu)
     return True
+
+
+@njit(cache=True, nogil=True)
+def _trend_kernel(  # pragma: no cover - compiled; tested through GpPredictor.fit
+    ky_inv: FloatArray, rel_q: FloatArray, y: FloatArray, sb2: float, out: FloatArray
+) -> None:
+    """out <- (intercept (d,), slope (d,)) of one window's prior mean, averaged over a
+    stationary model (slope 0) and a moving one (slope ~ N(0, sb2) per axis), with the
+    intercept's prior flat, by generalised least squares; times rel_q (c,) [s], positions y
+    (c, d) [m], Ky^-1 (c, c). Eq. gp_trend: the moving model's share is its posterior
+    probability at even prior odds."""
+    c = rel_q.shape[0]
+    dim = y.shape[1]
+    u = np.zeros(c)  # Ky^-1 1
+    v = np.zeros(c)  # Ky^-1 t
+    for w in range(c):
+        for x in range(c):
+            u[w] += ky_inv[w, x]
+            v[w] += ky_inv[w, x] * rel_q[x]
+    a00 = a01 = a11 = 0.0
+    for w in range(c):
+        a00 += u[w]
+        a01 += v[w]
+        a11 += v[w] * rel_q[w]
+    info = a11 - a01 * a01 / a00  # the data's information on the slope, the intercept unknown
+    mean = np.zeros(dim)  # the window's mean: the standing model's intercept
+    r0 = np.zeros(dim)  # 1^T Ky^-1 (y - mean)
+    r1 = np.zeros(dim)  # t^T Ky^-1 (y - mean)
+    for d in range(dim):
+        for w in range(c):
+            mean[d] += y[w, d]
+        mean[d] /= c
+        for w in range(c):
+            r0[d] += u[w] * (y[w, d] - mean[d])
+            r1[d] += v[w] * (y[w, d] - mean[d])
+    shrink = p_moving = 0.0
+    slope = np.zeros(dim)
+    if info > 0.0:
+        s0 = 1.0 / info  # the slope's variance from the data alone
+        log_bf = 0.0  # log p(y | moving) - log p(y | standing)
+        for d in range(dim):
+            slope[d] = (r1[d] - a01 * r0[d] / a00) / info
+            log_bf += -0.5 * math.log1p(sb2 / s0) + 0.5 * slope[d] ** 2 * (
+                1.0 / s0 - 1.0 / (s0 + sb2))
+        p_moving = 1.0 / (1.0 + math.exp(-log_bf)) if log_bf > -700.0 else 0.0
+        shrink = sb2 / (sb2 + s0)  # the moving model's posterior mean of the slope: shrunk
+    for d in range(dim):
+        moving_slope = shrink * slope[d]
+        out[dim + d] = p_moving * moving_slope
+        out[d] = mean[d] + p_moving * (r0[d] - a01 * moving_slope) / a00
 
 
 @njit(cache=True, nogil=True)
@@ -445,6 +529,7 @@ def _refit_kernel(  # pragma: no cover - compiled; tested through GpPredictor.re
     sf2: float,
     lam: float,
     sn2: float,
+    sb2: float,
     keys: IntArray,
     lengths: IntArray,
     invs: FloatArray,
@@ -464,8 +549,8 @@ def _refit_kernel(  # pragma: no cover - compiled; tested through GpPredictor.re
     if rows.shape[0] == 0:
         return 0, mu, beta, ky_inv
     mu, beta, ky_inv = mu.copy(), beta.copy(), ky_inv.copy()
-    ok = _fit_kernel(t_s, y, counts, rows, window, sf2, lam, sn2, keys, lengths, invs, stamps,
-                     memo, mu, beta, ky_inv)
+    ok = _fit_kernel(t_s, y, counts, rows, window, sf2, lam, sn2, sb2, keys, lengths, invs,
+                     stamps, memo, mu, beta, ky_inv)
     return 1 if ok else -1, mu, beta, ky_inv
 
 
@@ -606,7 +691,7 @@ class GpPredictor:
         """fit() after its checks."""
         n_rows, width = t_arr.shape
         t_w = np.ascontiguousarray(t_arr, dtype=np.float64)
-        mu = np.empty((n_rows, y_arr.shape[2]))
+        mu = np.empty((n_rows, 2 * y_arr.shape[2]))
         beta = np.empty(y_arr.shape)
         ky_inv = np.zeros((n_rows, width, width))
         self._reserve(n_rows)
@@ -614,7 +699,8 @@ class GpPredictor:
         if not _fit_kernel(
             t_w, np.ascontiguousarray(y_arr, dtype=np.float64), c_arr, np.arange(n_rows),
             params.window, params.sigma_f_m**2, params.lengthscale_s, params.sigma_n_m**2,
-            self._keys, self._lengths, self._invs, self._stamps, self._memo, mu, beta, ky_inv,
+            params.slope_sd_m_s**2, self._keys, self._lengths, self._invs, self._stamps,
+            self._memo, mu, beta, ky_inv,
         ):
             raise InputError(_SINGULAR)
         count = np.minimum(c_arr, params.window).astype(np.int64)
@@ -632,7 +718,8 @@ class GpPredictor:
         params = self._params
         status, mu, beta, ky_inv = _refit_kernel(
             t_s, y, counts, eligible, t_now_s, params.window, params.sigma_f_m**2,
-            params.lengthscale_s, params.sigma_n_m**2, self._keys, self._lengths, self._invs,
+            params.lengthscale_s, params.sigma_n_m**2, params.slope_sd_m_s**2, self._keys,
+            self._lengths, self._invs,
             self._stamps, self._memo, fit.mu, fit.beta, fit.ky_inv,
         )
         if status < 0:

@@ -8,6 +8,7 @@ region kind (str-valued: they compare equal to, and print as, their TOML text).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import Literal
@@ -131,7 +132,7 @@ FILTER_KEYS: tuple[Key, ...] = (
         "seconds without support before a confirmed track ends", project=True),
     Key("target_speed", Float(ge=0, le=100), _MOTION.speed_m_s,
         "typical ground speed of the targets, m/s (0: stationary): how fast an unseen "
-        "track's uncertainty grows", project=True),
+        "track's uncertainty grows, and the prior on its GP's trend", project=True),
     Key("manoeuvre_time", Float(gt=0), _MOTION.manoeuvre_s,
         "typical time between the targets' changes of heading, seconds", project=True),
     Key("confirm_existence", Float(gt=0, le=0.9999), _TRACKS.confirm_existence,
@@ -155,6 +156,10 @@ def sat_params(f: FilterSpec, p_detect: float, clutter_per_scan: float, dt_s: fl
     values match it (learn-gp gives 0.9965 m on the paper's 1 m sensor), and a smaller one
     makes a track's GP follow the noise of its detections, its mean off a standing target by
     more than its covariance says.
+
+    The GP's trend has the motion class's velocity as its prior (slope_sd_m_s = speed / sqrt 2
+    per axis, 0 for stationary targets): a walker's track is where its detections lead, not
+    behind them.
 
     The linear model's noise per step is at least the targets' motion class's displacement
     variance over one step, so that a component that no GP predicts can follow a mover. A track
@@ -180,7 +185,8 @@ def sat_params(f: FilterSpec, p_detect: float, clutter_per_scan: float, dt_s: fl
         birth_weight=f.birth_weight,
         velocity_var_m2_s2=f.velocity_variance,
         gp=GpParams(f.gp_sigma_f, f.gp_lengthscale,
-                    noise_std_m if f.gp_sigma_n is None else f.gp_sigma_n, f.gp_window),
+                    noise_std_m if f.gp_sigma_n is None else f.gp_sigma_n, f.gp_window,
+                    slope_sd_m_s=math.sqrt(motion.velocity_var_m2_s2)),
         tracks=TrackParams(f.merge_distance, f.confirm_length, f.track_timeout, f.gp_window,
                            motion, f.confirm_existence, f.drop_existence,
                            coast_after_s=f.coast_after,
