@@ -174,7 +174,8 @@ def _trend(params: GpParams, rel_s: FloatArray, y: FloatArray) -> tuple[FloatArr
     ky[np.diag_indices(rel_s.size)] += params.sigma_n_m**2
     out = np.empty(2 * y.shape[1])
     ky_inv = np.asarray(np.linalg.inv(ky), dtype=np.float64)
-    _trend_kernel(ky_inv, rel_s, np.ascontiguousarray(y), params.slope_sd_m_s**2, out)
+    beta = np.zeros(y.shape)
+    _trend_kernel(ky_inv, rel_s, np.ascontiguousarray(y), params.slope_sd_m_s**2, out, beta)
     return out[: y.shape[1]], out[y.shape[1] :]
 
 
@@ -448,59 +449,74 @@ def _fit_kernel(  # pragma: no cover - compiled; tested through GpPredictor.fit
             memo[1] += 1
             stamps[slot] = memo[1]
         dim = y.shape[2]
+        beta[i, :first] = 0.0
         if sb2 > 0.0:
-            _trend_kernel(block, rel_q[:c], y[i, first:], sb2, mu[i])
-        else:
-            for d in range(dim):
-                total = 0.0
-                for w in range(first, width):
-                    total += y[i, w, d]
-                mu[i, d] = total / c  # constant prior mean: the window's mean
-                mu[i, dim + d] = 0.0
-        for w in range(width):
+            _trend_kernel(block, rel_q[:c], y[i, first:], sb2, mu[i], beta[i, first:])
+            continue
+        for d in range(dim):
+            total = 0.0
+            for w in range(first, width):
+                total += y[i, w, d]
+            mu[i, d] = total / c  # constant prior mean: the window's mean
+            mu[i, dim + d] = 0.0
+        for w in range(first, width):
             for d in range(dim):
                 acc = 0.0
-                if w >= first:
-                    for v in range(first, width):
-                        prior = mu[i, d] + mu[i, dim + d] * rel_q[v - first]
-                        acc += ky_inv[i, w, v] * (y[i, v, d] - prior)
+                for v in range(first, width):
+                    acc += ky_inv[i, w, v] * (y[i, v, d] - mu[i, d])
                 beta[i, w, d] = acc  # Ky^-1 (y - mu)
     return True
 
 
 @njit(cache=True, nogil=True)
 def _trend_kernel(  # pragma: no cover - compiled; tested through GpPredictor.fit
-    ky_inv: FloatArray, rel_q: FloatArray, y: FloatArray, sb2: float, out: FloatArray
+    ky_inv: FloatArray, rel_q: FloatArray, y: FloatArray, sb2: float, out: FloatArray,
+    beta: FloatArray,
 ) -> None:
-    """out <- (intercept (d,), slope (d,)) of one window's prior mean, averaged over a
-    stationary model (slope 0) and a moving one (slope ~ N(0, sb2) per axis), with the
-    intercept's prior flat, by generalised least squares; times rel_q (c,) [s], positions y
-    (c, d) [m], Ky^-1 (c, c). Eq. gp_trend: the moving model's share is its posterior
-    probability at even prior odds."""
+    """out <- (intercept (d,), slope (d,)) of one window's prior mean (Eq. gp_trend) and beta
+    (c, d) <- Ky^-1 (y - mu(K)), for times rel_q (c,) [s], positions y (c, d) [m] and Ky^-1
+    (c, c): the mean averaged over a standing model (slope 0, the window's mean) and a moving one
+    (slope ~ N(0, sb2) per axis, a flat prior on the intercept, by generalised least squares),
+    each weighted by its posterior probability at even prior odds. One pass over Ky^-1 forms
+    Ky^-1 [1, t, y - mean]; beta follows from it, linear in the trend."""
     c = rel_q.shape[0]
     dim = y.shape[1]
-    u = np.zeros(c)  # Ky^-1 1
-    v = np.zeros(c)  # Ky^-1 t
-    for w in range(c):
-        for x in range(c):
-            u[w] += ky_inv[w, x]
-            v[w] += ky_inv[w, x] * rel_q[x]
-    a00 = a01 = a11 = 0.0
-    for w in range(c):
-        a00 += u[w]
-        a01 += v[w]
-        a11 += v[w] * rel_q[w]
-    info = a11 - a01 * a01 / a00  # the data's information on the slope, the intercept unknown
     mean = np.zeros(dim)  # the window's mean: the standing model's intercept
-    r0 = np.zeros(dim)  # 1^T Ky^-1 (y - mean)
-    r1 = np.zeros(dim)  # t^T Ky^-1 (y - mean)
     for d in range(dim):
         for w in range(c):
             mean[d] += y[w, d]
         mean[d] /= c
-        for w in range(c):
+    u = np.zeros(c)  # Ky^-1 1
+    v = np.zeros(c)  # Ky^-1 t
+    for w in range(c):
+        acc_u = acc_v = acc_0 = acc_1 = 0.0  # one pass over the row, the first two axes
+        for x in range(c):
+            k = ky_inv[w, x]
+            acc_u += k
+            acc_v += k * rel_q[x]
+            acc_0 += k * (y[x, 0] - mean[0])
+            if dim > 1:
+                acc_1 += k * (y[x, 1] - mean[1])
+        u[w], v[w] = acc_u, acc_v
+        beta[w, 0] = acc_0  # Ky^-1 (y - mean), less the trend's part below
+        if dim > 1:
+            beta[w, 1] = acc_1
+        for d in range(2, dim):
+            total = 0.0
+            for x in range(c):
+                total += ky_inv[w, x] * (y[x, d] - mean[d])
+            beta[w, d] = total
+    a00 = a01 = a11 = 0.0
+    r0 = np.zeros(dim)  # 1^T Ky^-1 (y - mean)
+    r1 = np.zeros(dim)  # t^T Ky^-1 (y - mean)
+    for w in range(c):
+        a00 += u[w]
+        a01 += v[w]
+        a11 += v[w] * rel_q[w]
+        for d in range(dim):
             r0[d] += u[w] * (y[w, d] - mean[d])
             r1[d] += v[w] * (y[w, d] - mean[d])
+    info = a11 - a01 * a01 / a00  # the data's information on the slope, the intercept unknown
     shrink = p_moving = 0.0
     slope = np.zeros(dim)
     if info > 0.0:
@@ -514,8 +530,11 @@ def _trend_kernel(  # pragma: no cover - compiled; tested through GpPredictor.fi
         shrink = sb2 / (sb2 + s0)  # the moving model's posterior mean of the slope: shrunk
     for d in range(dim):
         moving_slope = shrink * slope[d]
+        offset = p_moving * (r0[d] - a01 * moving_slope) / a00  # intercept - mean
+        out[d] = mean[d] + offset
         out[dim + d] = p_moving * moving_slope
-        out[d] = mean[d] + p_moving * (r0[d] - a01 * moving_slope) / a00
+        for w in range(c):
+            beta[w, d] -= offset * u[w] + out[dim + d] * v[w]
 
 
 @njit(cache=True, nogil=True)
