@@ -738,8 +738,7 @@ class GpPredictor:
         status, mu, beta, ky_inv = _refit_kernel(
             t_s, y, counts, eligible, t_now_s, params.window, params.sigma_f_m**2,
             params.lengthscale_s, params.sigma_n_m**2, params.slope_sd_m_s**2, self._keys,
-            self._lengths, self._invs,
-            self._stamps, self._memo, fit.mu, fit.beta, fit.ky_inv,
+            self._lengths, self._invs, self._stamps, self._memo, fit.mu, fit.beta, fit.ky_inv,
         )
         if status < 0:
             raise InputError(_SINGULAR)
