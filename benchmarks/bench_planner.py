@@ -11,7 +11,6 @@ replanned 300 times from a robot that moves on between calls.
 from __future__ import annotations
 
 import time
-from dataclasses import replace
 
 import numpy as np
 
@@ -31,8 +30,8 @@ def _tracks(rng: np.random.Generator, world: World, n: int) -> tuple[Tracks, Mix
     empty = Tracks.empty(2, 30)
     ids = np.arange(n, dtype=np.int64)
     xy = rng.uniform(0, 1, (n, 2)) * [world.width_m, world.height_m]
-    tracks = replace(
-        empty, ids=ids, hits=np.full(n, 5), life=np.full(n, 5), confirmed=np.ones(n, bool),
+    tracks = empty._replace(
+        ids=ids, hits=np.full(n, 5), life=np.full(n, 5), confirmed=np.ones(n, bool),
         born_t_s=np.zeros(n), last_t_s=np.zeros(n), seen_t_s=rng.uniform(-300, 0, n),
         score=np.full(n, 8.0), alone=np.zeros(n, bool), means=xy,
         covs=np.broadcast_to(np.eye(2), (n, 2, 2)).copy(), win_t_s=np.zeros((n, 30)),

@@ -14,7 +14,6 @@ starts at (0, 0). That frame is UTM up to a constant, and the planners' World is
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import math
 from dataclasses import dataclass, field
@@ -299,8 +298,8 @@ class Pipeline:
         self.state, _ = step(state, scan, self.params, self.gp)
         if self.state.tracks.log.length:  # the per-step track history is for the study's
             # plots; a flight of hours would keep every row (and pickle it in checkpoints)
-            self.state = dataclasses.replace(self.state, tracks=dataclasses.replace(
-                self.state.tracks, log=TrackLog.empty(self.state.tracks.means.shape[1])))
+            self.state = self.state._replace(tracks=self.state.tracks._replace(
+                log=TrackLog.empty(self.state.tracks.means.shape[1])))
         tracks = self.state.tracks
         return StepRecord(
             t_s=t_s, blind=blind, detections=detections,

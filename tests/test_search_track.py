@@ -176,7 +176,7 @@ def _one_track(track_id: int, xy: list[float], var_m2: float, seen_t_s: float) -
     one["ids"][0], one["confirmed"][0], one["score"][0] = track_id, True, 10.0
     one["means"][0], one["covs"][0] = xy, var_m2 * np.eye(2)
     one["seen_t_s"][0] = one["last_t_s"][0] = seen_t_s
-    return replace(empty, **one)
+    return empty._replace(**one)
 
 
 def test_an_uncertain_track_is_revisited_and_a_sharp_one_is_not() -> None:

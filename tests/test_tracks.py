@@ -269,7 +269,7 @@ def test_a_track_pushed_out_of_the_search_area_ends() -> None:
     tracks, _ = _confirmed_walker()
     inside, _ = maintain(tracks, Mixture.empty(), NONE, np.zeros(0, dtype=bool), 3.0, params)
     assert inside.ids.tolist() == [0]
-    outside = replace(inside, means=np.array([[400.0, 0.0]]))
+    outside = inside._replace(means=np.array([[400.0, 0.0]]))
     gone, _ = maintain(outside, Mixture.empty(), NONE, np.zeros(0, dtype=bool), 4.0, params)
     assert gone.size == 0
 

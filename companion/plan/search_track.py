@@ -148,7 +148,7 @@ class SearchTrack:
         at, everything left to find."""
         n = self.cells_xy.shape[0]
         prior = belief if belief is not None else Mixture.empty()
-        share = self._shares_on_cells(replace(prior, covs=prior.covs * LOST_SPREAD**2))
+        share = self._shares_on_cells(prior._replace(covs=prior.covs * LOST_SPREAD**2))
         return SearchProgress(np.zeros(n, dtype=np.int64), np.zeros(n, dtype=bool),
                               np.full(n, -math.inf), -math.inf, math.inf, False,
                               prior=prior, prior_share=share)

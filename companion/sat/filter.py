@@ -10,6 +10,7 @@ import math
 import numbers
 from dataclasses import dataclass, field
 from enum import StrEnum
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -94,8 +95,7 @@ class Scan:
     sensor_xy: FloatArray
 
 
-@dataclass(frozen=True, slots=True)
-class SatState:
+class SatState(NamedTuple):
     """The estimator's whole state: time, mixture (Layers 1-2) and tracks (Layer 3)."""
 
     t_s: float
@@ -103,8 +103,7 @@ class SatState:
     tracks: Tracks
 
 
-@dataclass(frozen=True, slots=True)
-class StepReport:
+class StepReport(NamedTuple):
     """What one step did, for logs and counters."""
 
     estimates: int

@@ -40,6 +40,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -237,20 +238,19 @@ def gp_predict(
 
 
 
-@dataclass(frozen=True, slots=True)
-class GpFit:
+class GpFit(NamedTuple):
     """What prediction needs of T right-aligned windows, computed once per window.
 
     mu (T, 2d) is the prior mean's intercept a (the first d columns) and slope b (the last d,
     zero for a constant mean) at the window's newest time t_n, beta (T, W, d) = Ky^-1 (y -
     mu(K)) and ky_inv (T, W, W) = Ky^-1 with Ky = K(K, K) + sigma_n^2 I, all zero outside a
-    row's last count[i] columns; then at any time t*, with k = K(t*, K): mean = a + b min(t* -
+    row's last counts[i] columns; then at any time t*, with k = K(t*, K): mean = a + b min(t* -
     t_n, 0) + k^T beta (Eqs. gp_trend, gp_prediction), velocity = b + (dk/dt*)^T beta and
     variance = sigma_f^2 - k^T Ky^-1 k, a few products per row.
     """
 
     t_s: FloatArray  # (T, W)
-    count: IntArray  # (T,)
+    counts: IntArray  # (T,)
     mu: FloatArray  # (T, d)
     beta: FloatArray  # (T, W, d)
     ky_inv: FloatArray  # (T, W, W)
@@ -274,13 +274,13 @@ def predict_fit(
     at t_star_s: shapes (T, d), (T,), (T, d), each with a leading axis of length k when t_star_s
     is an array of k times."""
     times = np.atleast_1d(np.asarray(t_star_s, dtype=np.float64))
-    picked = np.arange(fit.count.shape[0]) if rows is None else rows
+    picked = np.arange(fit.counts.shape[0]) if rows is None else rows
     dim = fit.beta.shape[2]
     mean = np.empty((times.size, picked.size, dim))
     var = np.empty((times.size, picked.size))
     velocity = np.empty((times.size, picked.size, dim))
     gp_predict_rows(
-        fit.t_s, fit.count, fit.mu, fit.beta, fit.ky_inv, picked, times,
+        fit.t_s, fit.counts, fit.mu, fit.beta, fit.ky_inv, picked, times,
         params.sigma_f_m**2, params.lengthscale_s, mean, var, velocity,
     )
     if np.ndim(t_star_s) == 0:
@@ -755,7 +755,7 @@ class GpPredictor:
         """
         t_star = _check_t_star(t_star_s)
         fit = self.fit(t_s, y, counts)
-        if fit.count.size:
+        if fit.counts.size:
             _check_rel(fit.t_s[:, -1:] - t_star)
         return predict_fit(self._params, fit, t_star)
 

@@ -26,7 +26,7 @@ intensity and b that of measurements from targets not yet seen, birth_weight ove
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -322,7 +322,7 @@ def step(
         # Newborn Bernoullis take provisional labels past every track id: they never merge
         # with another Bernoulli, and the cap on components counts them.
         labels = tracks.next_id + np.arange(born.size, dtype=np.int64)
-        posterior = Mixture.concat([posterior, replace(born, labels=labels)])
+        posterior = Mixture.concat([posterior, born._replace(labels=labels)])
     pruned, _ = prune(posterior, params.prune_weight)
     reduced = merge(pruned, params.merge_distance_sq, params.max_components).mixture
     return _maintain(tracks, reduced, detected_p, t_s, params)
@@ -362,8 +362,7 @@ def _maintain(
     seen = np.flatnonzero(hit & alive)
     win_t, win_xy, win_count = pushed_windows(tracks, seen, summary.means[seen, :2], t_s,
                                               tp.window)
-    updated = replace(
-        tracks,
+    updated = tracks._replace(
         hits=hits,
         life=tracks.life + 1,
         confirmed=confirmed,
@@ -379,15 +378,15 @@ def _maintain(
     keep = alive[row]
     mix = Mixture(weights[keep], mix.means[keep], mix.covs[keep], mix.labels[keep])
     survivors = updated.take(alive)
-    survivors = replace(survivors, log=survivors.log.append(
+    survivors = survivors._replace(log=survivors.log.append(
         survivors.ids, t_s, survivors.means, survivors.covs))
     if born.size:
         rows = np.arange(born.size)
         n_old = survivors.size
         survivors = _with_new_tracks(survivors, rows, np.ones(born.size, dtype=bool), born,
                                      t_s, tp, existence=born.weights)
-        mix = Mixture.concat([mix, replace(born, labels=survivors.ids[n_old:])])
-    survivors = replace(survivors, alone=np.ones(survivors.size, dtype=bool))
+        mix = Mixture.concat([mix, born._replace(labels=survivors.ids[n_old:])])
+    survivors = survivors._replace(alone=np.ones(survivors.size, dtype=bool))
     extracted = int(np.count_nonzero(survivors.existence > params.extract_weight))
     return mix, survivors, extracted
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -17,8 +17,7 @@ NO_LABEL = -1
 """Label of a component that belongs to no track."""
 
 
-@dataclass(frozen=True, slots=True)
-class Mixture:
+class Mixture(NamedTuple):
     """v(x) = sum_i w_i N(x; m_i, P_i) (Eq. general_gm_phd_intensity), one row per component.
 
     `labels[i]` is the id of the track that component i supports, or NO_LABEL. Positions are the

@@ -83,7 +83,7 @@ def predict(
         fit, track_ids, confirmed = _NO_FIT, _NO_TRACKS, _NO_CONFIRMED
     weights, means, covs = _predict_kernel(
         prior.weights, prior.means, prior.covs, prior.labels, f, q, p_survive, track_ids,
-        confirmed, fit.t_s, fit.count, fit.mu, fit.beta, fit.ky_inv, gp.sigma_f_m**2,
+        confirmed, fit.t_s, fit.counts, fit.mu, fit.beta, fit.ky_inv, gp.sigma_f_m**2,
         gp.lengthscale_s, t_before_s, t_now_s, incremental,
     )
     return Mixture(weights, means, covs, prior.labels)

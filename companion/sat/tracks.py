@@ -29,7 +29,8 @@ have gone, and a re-detected mover gates with its own grown track instead of sta
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -62,8 +63,7 @@ class TrackParams:
     coast_after_s: float = 10.0  # a track not detected for longer is coasting on prediction
 
 
-@dataclass(frozen=True, slots=True)
-class Evidence:
+class Evidence(NamedTuple):
     """What the sensor could say this step: its footprint, p(D|F), clutter density, R and the
     density of targets not yet seen (the birth intensity)."""
 
@@ -91,8 +91,7 @@ class _LogBuffer:
         self.used = 0
 
 
-@dataclass(frozen=True, slots=True)
-class TrackLog:
+class TrackLog(NamedTuple):
     """Append-only history rows (track id, t_s, mean, cov); appending returns a new view.
 
     Views share one buffer and copy it only when an older view is appended to again, so that
@@ -148,8 +147,7 @@ class TrackLog:
         return buf.t_s[rows].copy(), buf.means[rows].copy(), buf.covs[rows].copy()
 
 
-@dataclass(frozen=True, slots=True)
-class Tracks:
+class Tracks(NamedTuple):
     """The live tracks, one row each, with their recent positions for GP prediction."""
 
     ids: IntArray  # (T,)
@@ -170,7 +168,7 @@ class Tracks:
     gp_mu: FloatArray  # (T, 4) GP fit of each window (see GpFit), refitted when it changes
     gp_beta: FloatArray  # (T, W, 2)
     gp_ky_inv: FloatArray  # (T, W, W)
-    log: TrackLog = field(repr=False)
+    log: TrackLog
     next_id: int = 0
 
     @property
@@ -231,10 +229,10 @@ class Tracks:
 
     def take(self, keep: BoolArray | IntArray) -> Tracks:
         """The tracks selected by a mask or an index, sharing the log."""
-        return replace(self, **{name: getattr(self, name)[keep] for name in _ROW_FIELDS})
+        return self._replace(**{name: getattr(self, name)[keep] for name in _ROW_FIELDS})
 
 
-_ROW_FIELDS = tuple(f.name for f in fields(Tracks) if f.name not in ("log", "next_id"))
+_ROW_FIELDS = tuple(name for name in Tracks._fields if name not in ("log", "next_id"))
 """The fields of Tracks that hold one row per track."""
 
 
@@ -262,7 +260,7 @@ def _gating_view(tracks: Tracks, t_s: float, motion: TargetMotion) -> Tracks:
     if not np.count_nonzero(tracks.alone):  # (faster than any() on a few rows)
         return tracks
     covs = np.where(tracks.alone[:, None, None], grown_covs(tracks, t_s, motion), tracks.covs)
-    return replace(tracks, covs=covs)
+    return tracks._replace(covs=covs)
 
 
 def _coast(
@@ -295,7 +293,7 @@ def _coast(
     last_t[rows] = t_s
     alone = tracks.alone.copy()
     alone[rows] = True
-    return replace(tracks, means=means, covs=covs, score=score, last_t_s=last_t, alone=alone)
+    return tracks._replace(means=means, covs=covs, score=score, last_t_s=last_t, alone=alone)
 
 
 def maintain(
@@ -397,7 +395,7 @@ def _absorb(
         labels[labels == tracks.ids[n]] = tracks.ids[o]
     found = taken & ~ended
     log = tracks.log.append(rows["ids"][found], t_s, rows["means"][found], rows["covs"][found])
-    return replace(tracks, **rows, log=log).take(~ended), labels
+    return tracks._replace(**rows, log=log).take(~ended), labels
 
 
 def _support(
