@@ -146,8 +146,15 @@ def _float_array(value: object, what: str) -> FloatArray:
         raise InputError(f"{what}: must be numbers, got {value!r}") from exc
 
 
-def _checked_time(scan: Scan, state: SatState) -> None:
-    """InputError unless the scan's time is a finite number in [state time, + _MAX_GAP_S]."""
+def _checked_scan(
+    scan: Scan, state: SatState, params: SatParams
+) -> tuple[FloatArray, int, FloatArray, Region | None, FloatArray]:
+    """(the measurements to use (m, 2), how many rows were dropped, the sensor's ground position
+    (2,), the region seen, R) of a scan, or InputError: see step.
+
+    Non-finite measurement rows are dropped; a blind step (no region, or no finite sensor
+    position: nothing is known of where the frame looked) drops them all.
+    """
     raw: object = scan.t_s  # typed float, but callers may hand in anything
     if type(raw) is float:  # the common case, without the slower abstract-class test
         t = raw
@@ -158,48 +165,59 @@ def _checked_time(scan: Scan, state: SatState) -> None:
             f"scan time {raw!r} s: must be finite, >= {state.t_s} s and at most "
             f"{_MAX_GAP_S:.0e} s later"
         )
-
-
-def _checked_sensor(scan: Scan) -> tuple[FloatArray, bool]:
-    """The sensor's ground position (2,), NaN when unknown, and whether it is known (finite);
-    InputError for another shape."""
+    if state.mixture.means.shape[1] != params.linear_model.state_dim:
+        _check_dim(state.mixture, params)
+    z = _float_array(scan.measurements_xy, "scan measurements")
+    if z.size and (z.ndim != 2 or z.shape[1] != 2):
+        raise InputError(f"scan measurements: expected shape (m, 2), got {z.shape}")
+    if z.size == 0:
+        z = _NO_MEASUREMENTS
     sensor_xy = _float_array(scan.sensor_xy, "scan sensor_xy")
     if sensor_xy.shape != (2,):
         raise InputError(f"scan sensor_xy: expected shape (2,), got {sensor_xy.shape}")
-    x, y = sensor_xy.tolist()
-    return sensor_xy, math.isfinite(x) and math.isfinite(y)
-
-
-def _checked_measurements(scan: Scan) -> tuple[FloatArray, int]:
-    """The finite rows of the scan's measurements and how many rows were dropped."""
-    z = _float_array(scan.measurements_xy, "scan measurements")
-    if z.size == 0:
-        return np.zeros((0, 2)), 0
-    if z.ndim != 2 or z.shape[1] != 2:
-        raise InputError(f"scan measurements: expected shape (m, 2), got {z.shape}")
-    finite_entries = np.isfinite(z)
-    if np.count_nonzero(finite_entries) == z.size:  # all finite (faster than all())
-        return z, 0
-    finite = finite_entries.all(axis=1)
-    return z[finite], int(z.shape[0] - finite.sum())
-
-
-def _checked_r(r: object) -> FloatArray:
-    """The scan's measurement covariance as a symmetric positive definite 2x2, or InputError."""
-    r_cov = _float_array(r, "scan measurement covariance")
+    region = scan.region
+    if region is not None and not isinstance(region, _REGIONS):
+        raise InputError(f"scan region: must be a Disk, a ConvexPolygon or None, got {region!r}")
+    r_cov = _float_array(scan.r_cov, "scan measurement covariance")
     if r_cov.shape != (2, 2):
         raise InputError(f"scan measurement covariance: expected shape (2, 2), got {r_cov.shape}")
-    (a, b), (c, d) = r_cov.tolist()
-    if not all(map(math.isfinite, (a, b, c, d))):
-        raise InputError("scan measurement covariance: must be finite")
+    finite_rows, pose_known, r_fault = _scan_kernel(z, sensor_xy, r_cov)
+    if r_fault:
+        raise InputError(f"scan measurement covariance: {_R_FAULTS[r_fault]}")
+    if region is None or not pose_known:
+        return _NO_MEASUREMENTS, z.shape[0], sensor_xy, None, r_cov
+    dropped = z.shape[0] - finite_rows
+    if dropped:
+        z = z[np.isfinite(z).all(axis=1)]
+    return z, dropped, sensor_xy, region, r_cov
+
+
+_NO_MEASUREMENTS = np.zeros((0, 2))
+"""No measurements (size 0: nothing in it to change)."""
+
+_R_FAULTS = ("", "must be finite", "must be symmetric", "must be positive definite",
+             "too large (its determinant overflows)")
+"""The messages of _scan_kernel's codes for R; positive definite as fov accepts the components'
+covariances; a determinant beyond ~1e308 (R beyond ~1e154 m^2) would overflow R's inverse."""
+
+
+@njit(cache=True, nogil=True)
+def _scan_kernel(  # pragma: no cover - compiled; tested through step
+    z: FloatArray, sensor_xy: FloatArray, r_cov: FloatArray
+) -> tuple[int, bool, int]:
+    """(rows of z (m, 2) with both entries finite, whether sensor_xy is finite, the fault of R:
+    an index into _R_FAULTS, 0 for none)."""
+    finite_rows = 0
+    for i in range(z.shape[0]):
+        finite_rows += math.isfinite(z[i, 0]) and math.isfinite(z[i, 1])
+    pose_known = math.isfinite(sensor_xy[0]) and math.isfinite(sensor_xy[1])
+    a, b, c, d = r_cov[0, 0], r_cov[0, 1], r_cov[1, 0], r_cov[1, 1]
+    if not (math.isfinite(a) and math.isfinite(b) and math.isfinite(c) and math.isfinite(d)):
+        return finite_rows, pose_known, 1
     asymmetric, indefinite = spd_2x2_faults_of(a, b, c, d)
-    if asymmetric:
-        raise InputError("scan measurement covariance: must be symmetric")
-    if indefinite:  # as fov accepts the components' covariances
-        raise InputError("scan measurement covariance: must be positive definite")
-    if not math.isfinite(a * d - b * c):  # R beyond ~1e154 m^2: its inverse would overflow
-        raise InputError("scan measurement covariance: too large (its determinant overflows)")
-    return r_cov
+    if asymmetric or indefinite:
+        return finite_rows, pose_known, 2 if asymmetric else 3
+    return finite_rows, pose_known, 0 if math.isfinite(a * d - b * c) else 4
 
 
 def _predict(state: SatState, dt_s: float, params: SatParams) -> Mixture:
@@ -237,19 +255,7 @@ def step(
     dropped and counted, not refused; a non-finite sensor_xy makes the step blind.
     """
     # Every input is checked here, so that a bad scan raises InputError and nothing else.
-    _checked_time(scan, state)
-    _check_dim(state.mixture, params)
-    z, dropped = _checked_measurements(scan)
-    sensor_xy, pose_known = _checked_sensor(scan)
-    region = scan.region
-    if region is not None and not isinstance(region, _REGIONS):
-        raise InputError(f"scan region: must be a Disk, a ConvexPolygon or None, got {region!r}")
-    if region is not None and not pose_known:
-        region = None  # no usable pose: this frame tells nothing about where we looked
-    if region is None:
-        dropped += z.shape[0]
-        z = np.zeros((0, 2))
-    r_cov = _checked_r(scan.r_cov)
+    z, dropped, sensor_xy, region, r_cov = _checked_scan(scan, state, params)
 
     predicted = _predict(state, scan.t_s - state.t_s, params)
     if params.kind is FilterKind.LMB:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
@@ -54,6 +55,7 @@ def _spd_2x2_faults_one(cov: FloatArray) -> tuple[BoolArray, BoolArray]:
     return np.asarray(asymmetric), np.asarray(indefinite)
 
 
+@njit(cache=True, nogil=True)
 def spd_2x2_faults_of(p00: float, p01: float, p10: float, p11: float) -> tuple[bool, bool]:
     """spd_2x2_faults of one 2x2 given by its entries, without numpy's per-call overhead (same
     IEEE results: Python floats round, overflow to inf and underflow to 0 as float64 arrays
