@@ -217,9 +217,9 @@ def support(
     supported_by: IntArray, hit: BoolArray, coasting: BoolArray, p_in: FloatArray,
     center_xy: FloatArray, radius_m: float, mix_means: FloatArray, mix_covs: FloatArray,
     t_s: float, scored: bool, r_cov: FloatArray, p_detect: float, clutter_per_m2: float,
-    gate_sq: float, max_score: float, window: int, confirm_length: int, confirm_score: float,
-    log_ids: IntArray, log_t_s: FloatArray, log_means: FloatArray, log_covs: FloatArray,
-    log_start: int, timeout_s: float, drop_existence: float,
+    gate_sq: float, max_existence: float, window: int, confirm_length: int,
+    confirm_existence: float, log_ids: IntArray, log_t_s: FloatArray, log_means: FloatArray,
+    log_covs: FloatArray, log_start: int, timeout_s: float, drop_existence: float,
 ) -> tuple[FloatArray, FloatArray, IntArray, IntArray, FloatArray, FloatArray, BoolArray,
            FloatArray, BoolArray, FloatArray, FloatArray, IntArray, BoolArray, IntArray, int,
            int, bool]:
@@ -231,14 +231,16 @@ def support(
     Each row with supported_by[row] >= 0 takes that component's moments and time t_s, and
     writes them to the log's buffers from row log_start on (in row order); a row with hit also
     counts a detection and pushes the component's position onto its GP window. When `scored`
-    (a frame was processed), a supported row's score gains _score_delta, capped at max_score;
+    (a frame was processed), a supported row's score gains _score_delta, capped at the logit of
+    max_existence;
     a miss reads its component's p(F): computed here in a disk (radius_m > 0, centre
-    center_xy), else given in p_in (T,). A row with confirm_length hits and a score of at least
-    confirm_score becomes confirmed.
+    center_xy), else given in p_in (T,). A row with confirm_length hits and an existence of at
+    least confirm_existence becomes confirmed.
     """
     new_means, new_covs, new_hits, new_life = means.copy(), covs.copy(), hits.copy(), life.copy()
     new_last_t, new_seen_t, new_alone = last_t_s.copy(), seen_t_s.copy(), alone.copy()
     new_score, new_confirmed = score.copy(), confirmed.copy()
+    max_score, confirm_score = logit(max_existence), logit(confirm_existence)
     new_win_t, new_win_xy, new_win_count = win_t_s.copy(), win_xy.copy(), win_count.copy()
     mass, moment, second = np.empty(1), np.zeros((1, 2)), np.zeros((1, 2, 2))
     n_logged = 0
@@ -296,6 +298,12 @@ _NO_AREA = np.zeros(0)
 
 
 @njit(cache=True, nogil=True)
+def logit(p: float) -> float:  # pragma: no cover - compiled
+    """log(p / (1 - p)): the score of existence p."""
+    return math.log(p / (1.0 - p))
+
+
+@njit(cache=True, nogil=True)
 def existence(score: float) -> float:  # pragma: no cover - compiled
     """The probability that a track's target exists, from its log-likelihood ratio."""
     return 1.0 / (1.0 + math.exp(-score))
@@ -349,7 +357,7 @@ def append_tracks(
     win_count: IntArray, gp_mu: FloatArray, gp_beta: FloatArray, gp_ky_inv: FloatArray,
     comp: IntArray, hit: BoolArray, mix_means: FloatArray, mix_covs: FloatArray,
     new_score: FloatArray, t_s: float, next_id: int, confirm_length: int,
-    confirm_score: float, log_ids: IntArray, log_t_s: FloatArray, log_means: FloatArray,
+    confirm_existence: float, log_ids: IntArray, log_t_s: FloatArray, log_means: FloatArray,
     log_covs: FloatArray, log_start: int,
 ) -> tuple[IntArray, IntArray, IntArray, BoolArray, FloatArray, FloatArray, FloatArray,
            FloatArray, BoolArray, FloatArray, FloatArray, FloatArray, FloatArray, IntArray,
@@ -357,8 +365,8 @@ def append_tracks(
     """The track rows (in Tracks' field order) followed by one new track per component row
     comp[k]: id next_id + k, born, supported and seen at t_s, that component's moments, score
     new_score[k], one hit and one detection in its GP window if hit[k], confirmed with
-    confirm_length hits and a score of at least confirm_score, no GP fit yet. Their first rows
-    go to the log's buffers from row log_start on."""
+    confirm_length hits and an existence of at least confirm_existence, no GP fit yet. Their
+    first rows go to the log's buffers from row log_start on."""
     n = ids.shape[0] + comp.shape[0]
     ids, hits, life = _extended(ids, n), _extended(hits, n), _extended(life, n)
     confirmed, born_t_s = _extended(confirmed, n), _extended(born_t_s, n)
@@ -368,7 +376,7 @@ def append_tracks(
     win_t_s, win_xy = _extended(win_t_s, n), _extended(win_xy, n)
     win_count, gp_mu = _extended(win_count, n), _extended(gp_mu, n)
     gp_beta, gp_ky_inv = _extended(gp_beta, n), _extended(gp_ky_inv, n)
-    last = win_t_s.shape[1] - 1
+    last, confirm_score = win_t_s.shape[1] - 1, logit(confirm_existence)
     for k in range(comp.shape[0]):
         row, c = n - comp.shape[0] + k, comp[k]
         ids[row] = next_id + k

@@ -74,10 +74,6 @@ class Evidence(NamedTuple):
     birth_per_m2: float
 
 
-def _logit(p: float) -> float:
-    return math.log(p / (1.0 - p))
-
-
 class _LogBuffer:
     """Growable storage shared by TrackLog views; only ever written past every view's end."""
 
@@ -437,8 +433,8 @@ def _support(
         mix.means, mix.covs, t_s, evidence is not None, r_cov,
         0.0 if evidence is None else evidence.p_detect,
         0.0 if evidence is None else evidence.clutter_per_m2, params.gate_sq,
-        _logit(params.max_existence), params.window, params.confirm_length,
-        _logit(params.confirm_existence), buf.ids, buf.t_s, buf.means, buf.covs,
+        params.max_existence, params.window, params.confirm_length,
+        params.confirm_existence, buf.ids, buf.t_s, buf.means, buf.covs,
         tracks.log.length, params.timeout_s, params.drop_existence,
     )
     updated = Tracks(
@@ -510,7 +506,7 @@ def _with_new_tracks(
         tracks.last_t_s, tracks.seen_t_s, tracks.score, tracks.alone, tracks.means, tracks.covs,
         tracks.win_t_s, tracks.win_xy, tracks.win_count, tracks.gp_mu, tracks.gp_beta,
         tracks.gp_ky_inv, comp, hit, mix.means, mix.covs, score, t_s, tracks.next_id,
-        params.confirm_length, _logit(params.confirm_existence), buf.ids, buf.t_s, buf.means,
+        params.confirm_length, params.confirm_existence, buf.ids, buf.t_s, buf.means,
         buf.covs, tracks.log.length,
     )
     return Tracks(*rows, log=tracks.log.extended(buf, k), next_id=tracks.next_id + k)
