@@ -5,9 +5,9 @@ from __future__ import annotations
 from enum import Enum
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
+from companion.kernel_cache import kernel
 from companion.sat.mixture import NO_LABEL, Mixture
 
 FloatArray = NDArray[np.float64]
@@ -38,7 +38,7 @@ def birth_weights(
     )
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def born_weights_kernel(  # pragma: no cover - compiled; tested through birth_weights
     adaptive: bool,
     birth_weight: float,
@@ -67,7 +67,7 @@ def birth(
     return born
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def born_kernel(  # pragma: no cover - compiled; tested through birth
     z: FloatArray,
     weights: FloatArray,

@@ -5,9 +5,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
+from companion.kernel_cache import kernel
 from companion.sat.mixture import Mixture
 
 FloatArray = NDArray[np.float64]
@@ -22,13 +22,13 @@ def extract(mix: Mixture, weight_threshold: float) -> NDArray[np.int64]:
     return out
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _copies(weight: float) -> int:  # pragma: no cover - compiled
     """round(w), at least 1: the targets a heavy component stands for."""
     return max(math.floor(weight + 0.5), 1)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def count_estimates(weights: FloatArray, threshold: float) -> int:  # pragma: no cover
     """The number of estimates: the sum of round(w) over the weights above threshold."""
     total = 0
@@ -38,7 +38,7 @@ def count_estimates(weights: FloatArray, threshold: float) -> int:  # pragma: no
     return total
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _fill_estimates(  # pragma: no cover - compiled; tested through extract
     weights: FloatArray, threshold: float, out: IntArray
 ) -> None:

@@ -13,10 +13,10 @@ from enum import StrEnum
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
 from companion.errors import InputError
+from companion.kernel_cache import kernel
 from companion.sat import lmb
 from companion.sat.birth import BirthWeight, born_kernel, born_weights_kernel
 from companion.sat.extract import count_estimates
@@ -201,7 +201,7 @@ _R_FAULTS = ("", "must be finite", "must be symmetric", "must be positive defini
 covariances; a determinant beyond ~1e308 (R beyond ~1e154 m^2) would overflow R's inverse."""
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _scan_kernel(  # pragma: no cover - compiled; tested through step
     z: FloatArray, sensor_xy: FloatArray, r_cov: FloatArray
 ) -> tuple[int, bool, int]:
@@ -321,7 +321,7 @@ _NO_P_IN = np.zeros(0)
 """Placeholder p(F) for _update_kernel when it computes p(F) itself (a disk)."""
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _update_kernel(  # pragma: no cover - compiled; tested through step
     weights: FloatArray,
     means: FloatArray,
@@ -398,7 +398,7 @@ def _update_kernel(  # pragma: no cover - compiled; tested through step
                           merge_distance_sq, max_components, r_cov, extract_weight)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _reduce_kernel(  # pragma: no cover - compiled; tested through step
     weights: FloatArray,
     means: FloatArray,

@@ -38,11 +38,11 @@ from dataclasses import dataclass
 from typing import TypeAlias
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 from scipy.special import ndtr, owens_t
 
 from companion.errors import InputError
+from companion.kernel_cache import kernel
 from companion.sat.linalg import spd_2x2_faults
 
 FloatArray = NDArray[np.float64]
@@ -333,13 +333,13 @@ def _disk(
     return mass, moment, second
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _ndtr(x: float) -> float:  # pragma: no cover - compiled
     """Phi(x), the standard normal CDF."""
     return 0.5 * math.erfc(-x * _INV_SQRT_2)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def disk_kernel(  # pragma: no cover - compiled; tested through _disk
     means: FloatArray,
     a: FloatArray,

@@ -44,10 +44,10 @@ from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit
 from scipy.optimize import minimize
 
 from companion.errors import InputError
+from companion.kernel_cache import kernel
 
 __all__ = ["GpFit", "GpParams", "GpPredictor", "gp_predict", "learn_gp_params", "predict_fit"]
 
@@ -288,7 +288,7 @@ def predict_fit(
     return mean, var, velocity
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def gp_predict_rows(  # pragma: no cover - compiled; tested through predict_fit
     t_s: FloatArray,
     count: IntArray,
@@ -335,7 +335,7 @@ def gp_predict_rows(  # pragma: no cover - compiled; tested through predict_fit
             var[b, out] = max(sf2 - quad_b, floor)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _quad_forms(  # pragma: no cover - compiled; tested through predict_fit
     ky_inv: FloatArray, k_a: FloatArray, k_b: FloatArray, first: int
 ) -> tuple[float, float]:
@@ -378,7 +378,7 @@ def _quad_forms(  # pragma: no cover - compiled; tested through predict_fit
     return quad_a, quad_b
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _fit_kernel(  # pragma: no cover - compiled; tested through GpPredictor.fit
     t_s: FloatArray,
     y: FloatArray,
@@ -468,7 +468,7 @@ def _fit_kernel(  # pragma: no cover - compiled; tested through GpPredictor.fit
     return True
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _trend_kernel(  # pragma: no cover - compiled; tested through GpPredictor.fit
     ky_inv: FloatArray, rel_q: FloatArray, y: FloatArray, sb2: float, out: FloatArray,
     beta: FloatArray,
@@ -537,7 +537,7 @@ def _trend_kernel(  # pragma: no cover - compiled; tested through GpPredictor.fi
             beta[w, d] -= offset * u[w] + out[dim + d] * v[w]
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _refit_kernel(  # pragma: no cover - compiled; tested through GpPredictor.refit
     t_s: FloatArray,
     y: FloatArray,
@@ -573,7 +573,7 @@ def _refit_kernel(  # pragma: no cover - compiled; tested through GpPredictor.re
     return 1 if ok else -1, mu, beta, ky_inv
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _ky_inv_kernel(  # pragma: no cover - compiled; tested through GpPredictor.fit
     rel_q: FloatArray, sf2: float, lam: float, sn2: float, out: FloatArray
 ) -> bool:

@@ -11,8 +11,9 @@ weighed exactly.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
+
+from companion.kernel_cache import kernel
 
 FloatArray = NDArray[np.float64]
 
@@ -31,7 +32,7 @@ def hypothesis_bound(phi: FloatArray) -> float:
     return float(np.prod(1.0 + gated))
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def exact_marginals(  # pragma: no cover - compiled; tested through lmb.associate
     phi_u: FloatArray, phi: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
@@ -98,7 +99,7 @@ def gibbs_marginals(
     return undetected, detected
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _gibbs_sweeps(  # pragma: no cover - compiled; tested through gibbs_marginals
     phi_u: FloatArray, phi: FloatArray, uniforms: FloatArray
 ) -> NDArray[np.int64]:

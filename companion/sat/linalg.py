@@ -5,8 +5,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
+
+from companion.kernel_cache import kernel
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -55,7 +56,7 @@ def _spd_2x2_faults_one(cov: FloatArray) -> tuple[BoolArray, BoolArray]:
     return np.asarray(asymmetric), np.asarray(indefinite)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def spd_2x2_faults_of(p00: float, p01: float, p10: float, p11: float) -> tuple[bool, bool]:
     """spd_2x2_faults of one 2x2 given by its entries, without numpy's per-call overhead (same
     IEEE results: Python floats round, overflow to inf and underflow to 0 as float64 arrays

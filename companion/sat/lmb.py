@@ -30,9 +30,9 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
+from companion.kernel_cache import kernel
 from companion.sat.birth import birth
 from companion.sat.fov import Disk, Region, prob_in_region, truncation_moments
 from companion.sat.hypotheses import (
@@ -188,7 +188,7 @@ def _per_row(row: IntArray, values: FloatArray, n_rows: int) -> FloatArray:
     return sums
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _components(  # pragma: no cover - compiled; tested through associate
     a: IntArray, b: IntArray, nodes: int
 ) -> IntArray:

@@ -6,9 +6,9 @@ from enum import Enum
 from functools import lru_cache
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
+from companion.kernel_cache import kernel
 from companion.sat.gp import GpFit, GpParams, gp_predict_rows
 from companion.sat.mixture import Mixture
 
@@ -94,7 +94,7 @@ _NO_TRACKS, _NO_CONFIRMED = np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.bo
 """No GP windows: predict moves every component by the linear model."""
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _predict_kernel(  # pragma: no cover - compiled; tested through predict
     weights: FloatArray,
     means: FloatArray,
@@ -154,7 +154,7 @@ def _predict_kernel(  # pragma: no cover - compiled; tested through predict
     return w_out, m_out, p_out
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _apply_gp_kernel(  # pragma: no cover - compiled; tested through predict
     labels: NDArray[np.int64],
     prior_means: FloatArray,

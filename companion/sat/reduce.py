@@ -5,9 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
+from companion.kernel_cache import kernel
 from companion.sat.mixture import NO_LABEL, Mixture
 
 FloatArray = NDArray[np.float64]
@@ -24,7 +24,7 @@ def prune(mix: Mixture, weight_threshold: float) -> tuple[Mixture, NDArray[np.bo
     return Mixture(weights, means, covs, labels), keep
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def prune_kernel(  # pragma: no cover - compiled; tested through prune
     weights: FloatArray, means: FloatArray, covs: FloatArray, labels: IntArray, threshold: float
 ) -> tuple[FloatArray, FloatArray, FloatArray, IntArray, NDArray[np.bool_], int]:
@@ -42,7 +42,7 @@ def prune_kernel(  # pragma: no cover - compiled; tested through prune
     return w_out, m_out, p_out, labels_out, keep, n_kept
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _keep_heavy(  # pragma: no cover - compiled; tested through prune
     weights: FloatArray, threshold: float, keep: NDArray[np.bool_]
 ) -> int:
@@ -54,7 +54,7 @@ def _keep_heavy(  # pragma: no cover - compiled; tested through prune
     return n_kept
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _compress(  # pragma: no cover - compiled; tested through prune
     keep: NDArray[np.bool_],
     weights: FloatArray,
@@ -127,7 +127,7 @@ def merge(
     return MergeResult(Mixture(weights, means, covs, labels), group_of)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def merge_kernel(  # pragma: no cover - compiled; tested through merge
     weights: FloatArray,
     means: FloatArray,
@@ -162,7 +162,7 @@ def merge_kernel(  # pragma: no cover - compiled; tested through merge
     return w_out, m_out, p_out, labels_out, group_of
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _greedy_groups(  # pragma: no cover - compiled; tested through merge
     means: FloatArray,
     covs: FloatArray,
@@ -244,7 +244,7 @@ def _greedy_groups(  # pragma: no cover - compiled; tested through merge
     return n_groups
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _quad(x: FloatArray, a: FloatArray) -> float:  # pragma: no cover - compiled
     """x^T A x for a small vector, without temporaries."""
     total = 0.0
@@ -256,7 +256,7 @@ def _quad(x: FloatArray, a: FloatArray) -> float:  # pragma: no cover - compiled
     return total
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _quad_2(a: FloatArray, x0: float, x1: float) -> float:  # pragma: no cover - compiled
     """x^T A x for a 2-vector (x0, x1), summed as _quad sums it."""
     return float(x0 * (a[0, 0] * x0 + a[0, 1] * x1) + x1 * (a[1, 0] * x0 + a[1, 1] * x1))
@@ -276,7 +276,7 @@ def _moment_match(mix: Mixture, group_of: IntArray, n_groups: int) -> Mixture:
     return Mixture(w_out, m_out, p_out, labels)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _moment_match_kernel(  # pragma: no cover - compiled; tested through merge
     weights: FloatArray,
     means: FloatArray,

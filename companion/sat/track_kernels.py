@@ -13,9 +13,9 @@ import math
 from typing import Any
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
+from companion.kernel_cache import kernel
 from companion.sat.fov import disk_kernel
 from companion.sat.mixture import NO_LABEL
 
@@ -24,7 +24,7 @@ IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _gate_sq(mt: FloatArray, pt: FloatArray, me: FloatArray, pe: FloatArray) -> float:
     """(m_e - m_t)^T (P_t + P_e)^-1 (m_e - m_t) over the position block (Eq. gate)."""
     a00 = pt[0, 0] + pe[0, 0]
@@ -37,7 +37,7 @@ def _gate_sq(mt: FloatArray, pt: FloatArray, me: FloatArray, pe: FloatArray) -> 
     return float((dx * (a11 * dx - a01 * dy) + dy * (a00 * dy - a10 * dx)) / det)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _density(d_sq: float, pt: FloatArray, pe: FloatArray) -> float:
     """N(m_e; m_t, P_t + P_e) over the position block, from its squared distance d_sq."""
     det = (pt[0, 0] + pe[0, 0]) * (pt[1, 1] + pe[1, 1]) - (pt[0, 1] + pe[0, 1]) * (
@@ -45,7 +45,7 @@ def _density(d_sq: float, pt: FloatArray, pe: FloatArray) -> float:
     return math.exp(-0.5 * d_sq) / (2.0 * math.pi * math.sqrt(det))
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def associate(
     track_ids: IntArray,
     track_means: FloatArray,
@@ -109,7 +109,7 @@ def associate(
     return assigned
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _hold(
     supported_by: IntArray, idle: IntArray, track_ids: IntArray, labels: IntArray,
     weights: FloatArray,
@@ -125,7 +125,7 @@ def _hold(
             supported_by[row] = best
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def support_of(
     track_ids: IntArray, track_means: FloatArray, track_covs: FloatArray, confirmed: BoolArray,
     moving: bool, est_rows: IntArray, labels: IntArray, means: FloatArray, covs: FloatArray,
@@ -162,7 +162,7 @@ def support_of(
             coasting, est_rows[assigned < 0])
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _score_delta(
     cov: FloatArray, p_in: float, hit: bool, r_cov: FloatArray, p_detect: float,
     clutter_per_m2: float, gate_sq: float,
@@ -181,7 +181,7 @@ def _score_delta(
     return math.log1p(-min(p_detect * p_in, 1.0 - 1e-12))
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def push_window(
     win_t_s: FloatArray, win_xy: FloatArray, win_count: IntArray, row: int, t_s: float,
     xy: FloatArray, window: int,
@@ -199,7 +199,7 @@ def push_window(
     win_count[row] = min(win_count[row] + 1, window)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def push_windows(
     win_t_s: FloatArray, win_xy: FloatArray, win_count: IntArray, rows: IntArray, t_s: float,
     xy: FloatArray, window: int,
@@ -209,7 +209,7 @@ def push_windows(
         push_window(win_t_s, win_xy, win_count, rows[k], t_s, xy[k], window)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def support(
     means: FloatArray, covs: FloatArray, hits: IntArray, life: IntArray, last_t_s: FloatArray,
     seen_t_s: FloatArray, alone: BoolArray, score: FloatArray, confirmed: BoolArray,
@@ -297,19 +297,19 @@ _NO_AREA = np.zeros(0)
 """in_area for survivors when no row is coasting."""
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def logit(p: float) -> float:  # pragma: no cover - compiled
     """log(p / (1 - p)): the score of existence p."""
     return math.log(p / (1.0 - p))
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def existence(score: float) -> float:  # pragma: no cover - compiled
     """The probability that a track's target exists, from its log-likelihood ratio."""
     return 1.0 / (1.0 + math.exp(-score))
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def existences(score: FloatArray) -> FloatArray:  # pragma: no cover - compiled
     """existence of each score."""
     out = np.empty(score.shape[0])
@@ -318,7 +318,7 @@ def existences(score: FloatArray) -> FloatArray:  # pragma: no cover - compiled
     return out
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def survivors(
     supported_by: IntArray, coasting: BoolArray, confirmed: BoolArray, last_t_s: FloatArray,
     score: FloatArray, in_area: FloatArray, confirmed_now: BoolArray, track_ids: IntArray,
@@ -349,7 +349,7 @@ def survivors(
     return alive, labels, n_alive, n_new
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def append_tracks(
     ids: IntArray, hits: IntArray, life: IntArray, confirmed: BoolArray, born_t_s: FloatArray,
     last_t_s: FloatArray, seen_t_s: FloatArray, score: FloatArray, alone: BoolArray,
@@ -394,7 +394,7 @@ def append_tracks(
             win_t_s, win_xy, win_count, gp_mu, gp_beta, gp_ky_inv)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _extended(a: NDArray[Any], n: int) -> NDArray[Any]:  # pragma: no cover - compiled
     """a's rows followed by zeros, n rows in all."""
     out = np.zeros((n, *a.shape[1:]), dtype=a.dtype)
@@ -402,7 +402,7 @@ def _extended(a: NDArray[Any], n: int) -> NDArray[Any]:  # pragma: no cover - co
     return out
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def write_rows(
     buf_ids: IntArray, buf_t_s: FloatArray, buf_means: FloatArray, buf_covs: FloatArray,
     start: int, ids: IntArray, t_s: float, means: FloatArray, covs: FloatArray, rows: IntArray,

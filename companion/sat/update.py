@@ -7,9 +7,9 @@ from dataclasses import dataclass
 from enum import Enum
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
+from companion.kernel_cache import kernel
 from companion.sat.fov import Region, prob_in_region, truncation_moments
 from companion.sat.mixture import Mixture
 
@@ -117,7 +117,7 @@ def push_code(push: PushRule | None) -> int:
     return PAPER_PUSH if push.mode is PushMode.PAPER else MOMENT_PUSH
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def missed_kernel(  # pragma: no cover - compiled; tested through no_detection
     weights: FloatArray,
     means: FloatArray,
@@ -153,7 +153,7 @@ def missed_kernel(  # pragma: no cover - compiled; tested through no_detection
         _moment_kernel(p_d, c, first, second, claimed, m_out, p_out)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def paper_push_kernel(  # pragma: no cover - compiled; tested through no_detection
     p_d: FloatArray,
     lower: float,
@@ -170,7 +170,7 @@ def paper_push_kernel(  # pragma: no cover - compiled; tested through no_detecti
                 means[j, a] += p_d[j] * (means[j, a] - sensor_xy[a])  # Eq. push
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _moment_kernel(  # pragma: no cover - compiled; tested through no_detection
     p_d: FloatArray,
     c: float,
@@ -246,7 +246,7 @@ def detection(
     return DetectionUpdate(Mixture(weights, means, covs, labels), explained)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def detection_kernel(  # pragma: no cover - compiled; tested through detection
     w: FloatArray,
     mean: FloatArray,
