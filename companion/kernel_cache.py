@@ -43,8 +43,8 @@ def kernel(func: F) -> Dispatcher[F]:
 
 def clear_if_stale(package: Path, cache_dir: Path) -> bool:
     """Remove the cached kernels (*.nbi, *.nbc) in cache_dir unless they were compiled from the
-    package's present sources, and stamp them with those; whether it removed them. A cache that
-    cannot be changed is left as it is (numba then compiles in memory)."""
+    package's present sources, and stamp them with those; whether it removed them. A cache
+    directory that cannot be written is left as it is."""
     digest = hashlib.sha256()
     for path in sorted(package.glob("*.py")):
         digest.update(path.name.encode() + b"\0" + path.read_bytes() + b"\0")
