@@ -31,7 +31,7 @@ from companion.sat.gp import GpPredictor
 from companion.sat.mixture import Mixture
 from companion.sat.params import sat_params
 from companion.sat.predict import LinearModel
-from companion.sat.tracks import TrackLog
+from companion.sat.tracks import TrackLog, same_layout
 from companion.vision.calibration import load_calibration
 from companion.vision.camera import CameraModel
 from companion.vision.projection import (
@@ -212,18 +212,22 @@ class Pipeline:
                 "time_offset_s": self._time_offset_s,
                 "area_latlon": np.asarray(self.config.search.area_latlon).tolist()}
 
-    def restore(self, saved: dict[str, Any]) -> bool:
-        """Carry on from a checkpoint of the same search area; False (and nothing changed) if
-        it is of another area or not a checkpoint of this pipeline."""
+    def restore(self, saved: dict[str, Any]) -> str | None:
+        """Carry on from a checkpoint of the same search area: None, or why not (and nothing
+        changed): another area, not a checkpoint of this pipeline, or one whose estimator state
+        another version wrote."""
         state = saved.get("state")
-        same_area = np.array_equal(np.asarray(saved.get("area_latlon"), dtype=np.float64),
-                                   np.asarray(self.config.search.area_latlon))
-        if not same_area or not isinstance(state, SatState):
-            return False
+        if not np.array_equal(np.asarray(saved.get("area_latlon"), dtype=np.float64),
+                              np.asarray(self.config.search.area_latlon)):
+            return "is of another search area"
+        if not isinstance(state, SatState):
+            return "holds no estimator state"
+        if not same_layout(state.tracks, self._initial_state(0.0).tracks):
+            return "was written by another version of the estimator"
         self.state = state
         self._last_boot_s = saved.get("last_boot_s")
         self._time_offset_s = float(saved.get("time_offset_s", 0.0))
-        return True
+        return None
 
     # -- steps -------------------------------------------------------------------------------
 

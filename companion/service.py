@@ -362,8 +362,9 @@ class Service:
             return
         self.mission = dataclasses.replace(self.mission, auto_arm_spent=True,
                                            auto_offboard_spent=True)
-        if not self.pipeline.restore(data):
-            self._log(f"checkpoint {path} is of another search area: not resumed")
+        refused = self.pipeline.restore(data)
+        if refused is not None:
+            self._log(f"checkpoint {path} {refused}: not resumed")
             return
         state = self.pipeline.state
         confirmed = 0 if state is None else int(state.tracks.confirmed.sum())

@@ -147,14 +147,21 @@ def test_a_checkpoint_carries_the_estimate_over_a_restart(tmp_path: Path) -> Non
                               now_wall_s=(old / CHECKPOINT_NAME).stat().st_mtime + 1.0)
     assert found is not None and found[0] == old / CHECKPOINT_NAME
     second = _pipeline()
-    assert second.restore(found[1])
+    assert second.restore(found[1]) is None
     assert second.state is not None and first.state is not None
     assert second.state.t_s == first.state.t_s
     assert second.blind(15.0, "no frame").t_s == 15.0  # its clock carries on
     assert latest_checkpoint(tmp_path, exclude=new, max_age_s=600.0,
                              now_wall_s=(old / CHECKPOINT_NAME).stat().st_mtime + 601.0) is None
     other = dict(found[1], area_latlon=[[0.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
-    assert not _pipeline().restore(other)
+    assert _pipeline().restore(other) == "is of another search area"
+    assert _pipeline().restore(dict(found[1], state="a string")) == "holds no estimator state"
+    tracks = first.state.tracks
+    older = first.state._replace(tracks=tracks._replace(gp_mu=tracks.gp_mu[:, :4]))
+    kept = second.state
+    assert second.restore(dict(found[1], state=older)) == (
+        "was written by another version of the estimator")
+    assert second.state is kept
     (old / CHECKPOINT_NAME).write_bytes(b"torn")
     said: list[str] = []
     assert latest_checkpoint(tmp_path, exclude=new, max_age_s=600.0,
