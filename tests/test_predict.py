@@ -8,7 +8,13 @@ from numpy.typing import NDArray
 
 from companion.sat.gp import GpFit, GpParams, GpPredictor, predict_fit
 from companion.sat.mixture import Mixture
-from companion.sat.predict import KEPT_SHIFT_SD, LinearModel, predict, transition
+from companion.sat.predict import (
+    KEPT_SHIFT_SD,
+    STANDING_P,
+    LinearModel,
+    predict,
+    transition,
+)
 from companion.scenario_lookup import resolve_scenario
 from companion.sim.run import simulate
 from companion.sim.scenario import load_scenario
@@ -48,7 +54,8 @@ def _predicted_mean(fit: GpFit, shift_m: FloatArray, t_before_s: float) -> Float
 
 
 def test_the_fit_says_how_likely_the_target_stands() -> None:
-    assert _window_fit(0.0).mu[0, -1] > 0.9
+    assert _window_fit(0.0).mu[0, -1] > STANDING_P
+    assert 0.05 < _window_fit(0.05).mu[0, -1] < STANDING_P  # 1.5 m in 30 s under 1 m noise
     assert _window_fit(0.5).mu[0, -1] < 1e-6
     no_trend = GpParams(sigma_f_m=2.0, lengthscale_s=40.0, sigma_n_m=1.0, window=30)
     assert _window_fit(0.5, no_trend).mu[0, -1] == 1.0
@@ -62,18 +69,19 @@ def test_a_track_detected_at_the_last_step_takes_the_gp_mean() -> None:
 
 @pytest.mark.parametrize("shift_sd", [0.2, 3.0])
 def test_a_still_targets_track_keeps_what_misses_told_it(shift_sd: float) -> None:
-    """Eq. kept_shift: P(standing) x the shift, at most KEPT_SHIFT_SD standard deviations."""
+    """Eq. kept_shift: the shift, at most KEPT_SHIFT_SD standard deviations."""
     fit = _window_fit(0.0)
     shift = shift_sd * SD_M * np.array([0.6, 0.8])
     kept = _predicted_mean(fit, shift, t_before_s=35.0) - _gp_mean(fit, 36.0)
-    want = fit.mu[0, -1] * shift * min(1.0, KEPT_SHIFT_SD / shift_sd)
+    want = shift * min(1.0, KEPT_SHIFT_SD / shift_sd)
     np.testing.assert_allclose(kept, want, rtol=1e-9, atol=1e-12)
 
 
-def test_a_walkers_track_keeps_no_shift() -> None:
-    fit = _window_fit(0.5)
-    kept = _predicted_mean(fit, np.array([0.2, 0.0]), t_before_s=35.0) - _gp_mean(fit, 36.0)
-    assert np.abs(kept).max() < 1e-6
+@pytest.mark.parametrize("speed_m_s", [0.05, 0.5])
+def test_a_track_whose_window_may_move_keeps_no_shift(speed_m_s: float) -> None:
+    fit = _window_fit(speed_m_s)
+    got = _predicted_mean(fit, np.array([0.2, 0.0]), t_before_s=35.0)
+    np.testing.assert_array_equal(got, _gp_mean(fit, 36.0))
 
 
 def test_the_tag_at_the_edge_of_the_lanes_keeps_its_track_at_the_defaults() -> None:
