@@ -157,7 +157,7 @@ def test_a_checkpoint_carries_the_estimate_over_a_restart(tmp_path: Path) -> Non
     assert _pipeline().restore(other) == "is of another search area"
     assert _pipeline().restore(dict(found[1], state="a string")) == "holds no estimator state"
     tracks = first.state.tracks
-    older = first.state._replace(tracks=tracks._replace(gp_mu=tracks.gp_mu[:, :4]))
+    older = first.state._replace(tracks=tracks._replace(gp_mu=tracks.gp_mu[:, :-1]))
     kept = second.state
     assert second.restore(dict(found[1], state=older)) == (
         "was written by another version of the estimator")

@@ -322,7 +322,7 @@ def _check_state(state: SatState, params: SatParams, report: StepReport, scan: S
         "ids": (t,), "hits": (t,), "life": (t,), "confirmed": (t,), "born_t_s": (t,),
         "last_t_s": (t,), "seen_t_s": (t,), "score": (t,), "alone": (t,), "means": (t, d),
         "covs": (t, d, d), "win_t_s": (t, w),
-        "win_xy": (t, w, 2), "win_count": (t,), "gp_mu": (t, 5), "gp_beta": (t, w, 2),
+        "win_xy": (t, w, 2), "win_count": (t,), "gp_mu": (t, 4), "gp_beta": (t, w, 2),
         "gp_ky_inv": (t, w, w),
     }
     for name, shape in shapes.items():
@@ -342,7 +342,6 @@ def _check_state(state: SatState, params: SatParams, report: StepReport, scan: S
     assert np.all(tracks.born_t_s <= tracks.last_t_s) and np.all(tracks.last_t_s <= state.t_s)
     for name in ("means", "win_xy", "gp_mu", "gp_beta", "gp_ky_inv"):
         assert np.all(np.isfinite(getattr(tracks, name))), name
-    assert np.all((tracks.gp_mu[:, -1] >= 0.0) & (tracks.gp_mu[:, -1] <= 1.0)), "P(standing)"
     _assert_spd(tracks.covs, "tracks")
     labelled = mix.labels[mix.labels != NO_LABEL]
     assert np.all(np.isin(labelled, tracks.ids)), "every label is a live track"

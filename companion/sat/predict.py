@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from enum import Enum
 from functools import lru_cache
 
@@ -17,14 +16,6 @@ FloatArray = NDArray[np.float64]
 
 _VAR_FLOOR_REL = 1e-12
 """Relative increase of every variance in a constant-velocity prediction (see predict)."""
-
-KEPT_SHIFT_SD = 0.5
-"""The most a still target's track keeps of what misses moved its component off the GP's mean,
-in standard deviations of the component (Eq. kept_shift, see predict)."""
-
-STANDING_P = 0.9
-"""The probability of the standing model (odds 9:1) from which a track's window says its target
-stands (Eq. kept_shift)."""
 
 
 class LinearModel(Enum):
@@ -85,15 +76,8 @@ def predict(
     holds at least two detections takes the GP mean at t_now_s (Eq. gp_prediction), and its
     prior position covariance grows by the increase of the GP's predictive variance from
     t_before_s to t_now_s, in place of the linear model's Q; `incremental` moves its prior mean
-    by the GP mean's change instead. A track not detected at t_before_s whose window says its
-    target stands (P(standing) >= STANDING_P, GpFit) keeps the shift that the no-detection
-    updates since its last detection gave its component (its prior mean less the GP mean at
-    t_before_s), at most KEPT_SHIFT_SD of the component's standard deviations (Eq. kept_shift).
-    The GP knows only the detections; the miss of a still target's component straddling the
-    view's edge says the target is on the part out of view, and resetting the mean while the
-    covariance keeps the miss's shrinking would count that one miss again at every step. In a
-    constant-velocity state the derivative of the GP mean becomes the velocity mean and the
-    velocity block keeps its linear prediction.
+    by the GP mean's change instead. In a constant-velocity state the derivative of the GP mean
+    becomes the velocity mean and the velocity block keeps its linear prediction.
     """
     if fit is None or track_ids is None or confirmed is None:
         fit, track_ids, confirmed = _NO_FIT, _NO_TRACKS, _NO_CONFIRMED
@@ -171,22 +155,6 @@ def _predict_kernel(  # pragma: no cover - compiled; tested through predict
 
 
 @kernel
-def _kept_shift(  # pragma: no cover - compiled; tested through predict
-    prior_mean: FloatArray, prior_cov: FloatArray, gp_mean: FloatArray, p_standing: float
-) -> tuple[float, float]:
-    """The shift prior_mean - gp_mean (2-D positions) if p_standing >= STANDING_P, shortened to
-    KEPT_SHIFT_SD in the Mahalanobis norm of prior_cov's position block (Eq. kept_shift)."""
-    d0, d1 = prior_mean[0] - gp_mean[0], prior_mean[1] - gp_mean[1]
-    a, b, c = prior_cov[0, 0], prior_cov[0, 1], prior_cov[1, 1]
-    det = a * c - b * b
-    if p_standing < STANDING_P or not det > 0.0:
-        return 0.0, 0.0
-    m2 = (c * d0 * d0 - 2.0 * b * d0 * d1 + a * d1 * d1) / det
-    scale = 1.0 if m2 <= KEPT_SHIFT_SD * KEPT_SHIFT_SD else KEPT_SHIFT_SD / math.sqrt(m2)
-    return scale * d0, scale * d1  # Eq. kept_shift
-
-
-@kernel
 def _apply_gp_kernel(  # pragma: no cover - compiled; tested through predict
     labels: NDArray[np.int64],
     prior_means: FloatArray,
@@ -231,11 +199,6 @@ def _apply_gp_kernel(  # pragma: no cover - compiled; tested through predict
             means[j, 1] = prior_means[j, 1] + mean[0, 0, 1] - mean[1, 0, 1]
         else:
             means[j, 0], means[j, 1] = mean[0, 0, 0], mean[0, 0, 1]
-            if t_s[r, t_s.shape[1] - 1] < t_before:  # not detected at the last step
-                kept = _kept_shift(prior_means[j], prior_covs[j], mean[1, 0],
-                                    mu[r, mu.shape[1] - 1])
-                means[j, 0] += kept[0]
-                means[j, 1] += kept[1]
         covs[j, 0, 0] = prior_covs[j, 0, 0] + growth
         covs[j, 1, 1] = prior_covs[j, 1, 1] + growth
         covs[j, 0, 1], covs[j, 1, 0] = prior_covs[j, 0, 1], prior_covs[j, 1, 0]

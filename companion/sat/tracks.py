@@ -161,7 +161,7 @@ class Tracks(NamedTuple):
     win_t_s: FloatArray  # (T, W) times of the most recent detections, right-aligned
     win_xy: FloatArray  # (T, W, 2) positions at those detections, right-aligned
     win_count: IntArray  # (T,) valid entries at the right of the window
-    gp_mu: FloatArray  # (T, 5) GP fit of each window (see GpFit), refitted when it changes
+    gp_mu: FloatArray  # (T, 4) GP fit of each window (see GpFit), refitted when it changes
     gp_beta: FloatArray  # (T, W, 2)
     gp_ky_inv: FloatArray  # (T, W, W)
     log: TrackLog
@@ -190,7 +190,7 @@ class Tracks(NamedTuple):
             win_t_s=np.zeros((0, window)),
             win_xy=np.zeros((0, window, 2)),
             win_count=np.zeros(0, dtype=np.int64),
-            gp_mu=np.zeros((0, 5)),
+            gp_mu=np.zeros((0, 4)),
             gp_beta=np.zeros((0, window, 2)),
             gp_ky_inv=np.zeros((0, window, window)),
             log=TrackLog.empty(dim),
