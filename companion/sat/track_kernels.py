@@ -232,10 +232,9 @@ def support(
     writes them to the log's buffers from row log_start on (in row order); a row with hit also
     counts a detection and pushes the component's position onto its GP window. When `scored`
     (a frame was processed), a supported row's score gains _score_delta, capped at the logit of
-    max_existence;
-    a miss reads its component's p(F): computed here in a disk (radius_m > 0, centre
-    center_xy), else given in p_in (T,). A row with confirm_length hits and an existence of at
-    least confirm_existence becomes confirmed.
+    max_existence; a miss reads its component's p(F): computed here in a disk (radius_m > 0,
+    centre center_xy), else given in p_in (T,). A row with confirm_length hits and an existence
+    of at least confirm_existence becomes confirmed.
     """
     new_means, new_covs, new_hits, new_life = means.copy(), covs.copy(), hits.copy(), life.copy()
     new_last_t, new_seen_t, new_alone = last_t_s.copy(), seen_t_s.copy(), alone.copy()
