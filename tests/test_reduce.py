@@ -45,8 +45,7 @@ def test_two_tracks_components_merge_only_when_both_were_just_detected() -> None
     # Out of view, two tracks' components are two targets however close they are.
     assert sorted(merge(mix, 10.0, 100).mixture.labels.tolist()) == [3, 9]
     # Both updated by detections: one target seen twice; the older track (smaller id) lives on.
-    observed = np.array([True, True, False])
-    out = merge(mix, 10.0, 100, observed=observed).mixture
+    out = merge(mix, 10.0, 100, detection=np.array([0, 0, -1])).mixture
     assert out.labels.tolist() == [3]
     assert out.total_weight == pytest.approx(1.7)
 
@@ -55,7 +54,25 @@ def test_just_detected_duplicates_merge_within_their_joint_uncertainty() -> None
     # 1.9 m apart with P = 0.2 I each: d^2 = 18 under either P alone, 9 under their sum.
     mix = make_mixture([1.0, 0.8], [[0.0, 0.0], [1.9, 0.0]], [0.2 * np.eye(2)] * 2, [4, 7])
     assert merge(mix, 10.0, 100).mixture.size == 2
-    assert merge(mix, 10.0, 100, observed=np.array([True, True])).mixture.size == 1
+    assert merge(mix, 10.0, 100, detection=np.array([0, 0])).mixture.size == 1
+
+
+def test_two_detections_of_one_scan_are_two_targets_unless_one_may_be_clutter() -> None:
+    """Eq. one_detection: children of one parent updated by two detections 2.5 m apart sit
+    0.4 m apart (the parent's gain is small), well inside each other's gate."""
+    mix = make_mixture([1.0, 0.9], [[0.0, 0.0], [0.4, 0.0]], [0.2 * np.eye(2)] * 2, [5, 5])
+    two = np.array([0, 1])
+    # A parent counted as one target: the second detection may be clutter beside it; merged.
+    assert merge(mix, 10.0, 100, detection=two).mixture.size == 1
+    # A parent the PHD already counts as two targets: one per detection.
+    split = merge(mix, 10.0, 100, detection=two, counts_two=np.array([True, True])).mixture
+    assert split.size == 2
+    assert split.labels.tolist() == [5, 5]  # the tracks sort the lineage out
+    # Two tracks, each updated by its own detection: two targets, however close.
+    tracks = make_mixture([1.0, 0.9], [[0.0, 0.0], [0.4, 0.0]], [0.2 * np.eye(2)] * 2, [5, 8])
+    assert merge(tracks, 10.0, 100, detection=two).mixture.size == 2
+    # Both updated by one detection: one target seen twice, as before.
+    assert merge(tracks, 10.0, 100, detection=np.array([0, 0])).mixture.size == 1
 
 
 def test_merge_uses_the_candidates_covariance_as_vo_and_ma() -> None:

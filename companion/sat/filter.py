@@ -269,7 +269,8 @@ def step(
     if region is None:
         reduced, detected, est_rows, n_estimates = _reduced(*_reduce_kernel(
             predicted.weights, predicted.means, predicted.covs, predicted.labels,
-            np.zeros(n, dtype=bool), params.prune_weight, params.merge_distance_sq,
+            np.full(n, -1, dtype=np.int64), np.zeros(n, dtype=bool), params.prune_weight,
+            params.merge_distance_sq,
             params.max_components, r_cov, params.extract_weight,
         ))
     else:
@@ -393,9 +394,30 @@ def _update_kernel(  # pragma: no cover - compiled; tested through step
     w_new = born_weights_kernel(adaptive, birth_weight, explained, clutter, newborn)
     born_kernel(z, w_new, r_cov, velocity_var_m2_s2, w_out[end:], m_out[end:], p_out[end:],
                 labels_out[end:])
-    detected = np.arange(rows) >= n
-    return _reduce_kernel(w_out, m_out, p_out, labels_out, detected, prune_weight,
+    detection, counts_two = posterior_detections(weights, m)
+    return _reduce_kernel(w_out, m_out, p_out, labels_out, detection, counts_two, prune_weight,
                           merge_distance_sq, max_components, r_cov, extract_weight)
+
+
+TWO_TARGETS_WEIGHT = 1.5
+"""A component's weight from which extraction counts it as two targets (round(w) >= 2)."""
+
+
+@kernel
+def posterior_detections(weights: FloatArray, m: int) -> tuple[IntArray, BoolArray]:
+    """For the posterior of n predicted components (weights) and m detections, laid out as the
+    update lays it out (n missed, the m n detection children measurement-major, m newborn): the
+    detection that made each row (-1: none) and whether the row's parent already counts two
+    targets (Eq. one_detection, reduce.merge)."""
+    n = weights.shape[0]
+    detection = np.full(n + m * n + m, -1, dtype=np.int64)
+    counts_two = np.zeros(n + m * n + m, dtype=np.bool_)
+    for k in range(m):
+        for j in range(n):
+            detection[n + k * n + j] = k
+            counts_two[n + k * n + j] = weights[j] >= TWO_TARGETS_WEIGHT
+        detection[n + m * n + k] = k
+    return detection, counts_two
 
 
 @kernel
@@ -404,7 +426,8 @@ def _reduce_kernel(  # pragma: no cover - compiled; tested through step
     means: FloatArray,
     covs: FloatArray,
     labels: IntArray,
-    detected: BoolArray,
+    detection: IntArray,
+    counts_two: BoolArray,
     prune_weight: float,
     merge_distance_sq: float,
     max_components: int,
@@ -418,10 +441,11 @@ def _reduce_kernel(  # pragma: no cover - compiled; tested through step
     weights, means, covs, labels, keep, _ = prune_kernel(
         weights, means, covs, labels, prune_weight
     )
-    observed = detected[keep]
+    kept_detection = detection[keep]
+    observed = kept_detection >= 0
     w_out, m_out, p_out, labels_out, group_of = merge_kernel(
-        weights, means, covs, labels, observed, True, merge_distance_sq, True, r_cov, True,
-        max_components,
+        weights, means, covs, labels, kept_detection, counts_two[keep], True, merge_distance_sq,
+        True, r_cov, True, max_components,
     )
     from_detection = np.zeros(w_out.shape[0])
     for i in range(group_of.shape[0]):

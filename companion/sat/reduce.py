@@ -94,8 +94,9 @@ def merge(
     distance_sq_threshold: float,
     max_components: int,
     symmetric: bool = True,
-    observed: NDArray[np.bool_] | None = None,
+    detection: IntArray | None = None,
     resolution: FloatArray | None = None,
+    counts_two: NDArray[np.bool_] | None = None,
 ) -> MergeResult:
     """Greedy merging (Vo & Ma Table 2) of components within a squared Mahalanobis distance U.
 
@@ -110,17 +111,23 @@ def merge(
     its covariance a hundredfold. `symmetric` (the default) also requires the distance under the
     leader's P_j to be within U: the two must each lie within the other's gate.
     Components labelled with different tracks merge only when both were just updated by
-    detections (`observed`) and agree within U under P_i + P_j, or their positions lie within
-    one standard deviation of the measurement noise (`resolution`, R): then they are one target
-    seen twice, which the sensor cannot split. Otherwise they are two targets, however close
-    their uncertainties have grown while out of view.
+    detections (`detection`: the index of the detection that updated each component, -1 for
+    none) and agree within U under P_i + P_j, or their positions lie within one standard
+    deviation of the measurement noise (`resolution`, R): then they are one target seen twice,
+    which the sensor cannot split. Otherwise they are two targets, however close their
+    uncertainties have grown while out of view.
+    Eq. one_detection: a target gives at most one detection a scan, so components updated by two
+    different detections are two targets, and are not merged, when they descend from two tracks
+    or when a parent already counted two targets (`counts_two`: its weight rounds to 2 or more).
+    Otherwise the second detection may be clutter beside the target, and the two merge.
     """
     n = mix.size
     if n == 0:
         return MergeResult(mix, np.zeros(0, dtype=np.int64))
     weights, means, covs, labels, group_of = merge_kernel(
         mix.weights, mix.means, mix.covs, mix.labels,
-        np.zeros(n, dtype=np.bool_) if observed is None else observed, observed is not None,
+        np.full(n, -1, dtype=np.int64) if detection is None else detection,
+        np.zeros(n, dtype=np.bool_) if counts_two is None else counts_two, detection is not None,
         distance_sq_threshold, symmetric, _NO_RESOLUTION if resolution is None else resolution,
         resolution is not None, max_components,
     )
@@ -133,7 +140,8 @@ def merge_kernel(  # pragma: no cover - compiled; tested through merge
     means: FloatArray,
     covs: FloatArray,
     labels: IntArray,
-    observed: NDArray[np.bool_],
+    detection: IntArray,
+    counts_two: NDArray[np.bool_],
     label_rule: bool,
     threshold: float,
     symmetric: bool,
@@ -148,8 +156,8 @@ def merge_kernel(  # pragma: no cover - compiled; tested through merge
     group_of = np.empty(n, dtype=np.int64)
     leaders = np.empty(n, dtype=np.int64)
     n_groups = _greedy_groups(
-        means, covs, labels, observed, order, threshold, symmetric, label_rule, resolution,
-        has_resolution, max_groups, group_of, leaders,
+        means, covs, labels, detection, counts_two, order, threshold, symmetric, label_rule,
+        resolution, has_resolution, max_groups, group_of, leaders,
     )
     if n_groups == n:  # nothing merged or dropped: the components as they are, in group order
         return weights[leaders], means[leaders], covs[leaders], labels[leaders], group_of
@@ -167,7 +175,8 @@ def _greedy_groups(  # pragma: no cover - compiled; tested through merge
     means: FloatArray,
     covs: FloatArray,
     labels: IntArray,
-    observed: NDArray[np.bool_],
+    detection: IntArray,
+    counts_two: NDArray[np.bool_],
     order: IntArray,
     threshold: float,
     symmetric: bool,
@@ -207,11 +216,15 @@ def _greedy_groups(  # pragma: no cover - compiled; tested through merge
         for i in range(n):
             if leader_of[i] >= 0:
                 continue
-            both_tracks = labels[i] != NO_LABEL and labels[j] != NO_LABEL
-            if both_tracks and labels[i] != labels[j]:
+            two_tracks = labels[i] != NO_LABEL and labels[j] != NO_LABEL and labels[i] != labels[j]
+            detected_both = detection[i] >= 0 and detection[j] >= 0
+            if detected_both and detection[i] != detection[j] and (
+                    two_tracks or counts_two[i] or counts_two[j]):
+                continue  # Eq. one_detection: two detections of one scan are two targets
+            if two_tracks:
                 # Two tracks' components: one target only when both were just detected and
                 # agree within their joint uncertainty.
-                if not (label_rule and observed[i] and observed[j]):
+                if not (label_rule and detected_both):
                     continue
                 for k in range(dim):
                     diff[k] = means[i, k] - means[j, k]
