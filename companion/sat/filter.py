@@ -270,8 +270,7 @@ def step(
         reduced, detected, est_rows, n_estimates = _reduced(*_reduce_kernel(
             predicted.weights, predicted.means, predicted.covs, predicted.labels,
             np.full(n, -1, dtype=np.int64), np.zeros(n, dtype=bool), params.prune_weight,
-            params.merge_distance_sq,
-            params.max_components, r_cov, params.extract_weight,
+            params.merge_distance_sq, params.max_components, r_cov, params.extract_weight,
         ))
     else:
         area = region.area_m2
