@@ -443,8 +443,8 @@ def _reduce_kernel(  # pragma: no cover - compiled; tested through step
     kept_detection = detection[keep]
     observed = kept_detection >= 0
     w_out, m_out, p_out, labels_out, group_of = merge_kernel(
-        weights, means, covs, labels, kept_detection, counts_two[keep], True, merge_distance_sq,
-        True, r_cov, True, max_components,
+        weights, means, covs, labels, kept_detection, counts_two[keep], merge_distance_sq, True,
+        r_cov, True, max_components,
     )
     from_detection = np.zeros(w_out.shape[0])
     for i in range(group_of.shape[0]):

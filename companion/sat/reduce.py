@@ -127,9 +127,9 @@ def merge(
     weights, means, covs, labels, group_of = merge_kernel(
         mix.weights, mix.means, mix.covs, mix.labels,
         np.full(n, -1, dtype=np.int64) if detection is None else detection,
-        np.zeros(n, dtype=np.bool_) if counts_two is None else counts_two, detection is not None,
-        distance_sq_threshold, symmetric, _NO_RESOLUTION if resolution is None else resolution,
-        resolution is not None, max_components,
+        np.zeros(n, dtype=np.bool_) if counts_two is None else counts_two, distance_sq_threshold,
+        symmetric, _NO_RESOLUTION if resolution is None else resolution, resolution is not None,
+        max_components,
     )
     return MergeResult(Mixture(weights, means, covs, labels), group_of)
 
@@ -142,7 +142,6 @@ def merge_kernel(  # pragma: no cover - compiled; tested through merge
     labels: IntArray,
     detection: IntArray,
     counts_two: NDArray[np.bool_],
-    label_rule: bool,
     threshold: float,
     symmetric: bool,
     resolution: FloatArray,
@@ -156,8 +155,8 @@ def merge_kernel(  # pragma: no cover - compiled; tested through merge
     group_of = np.empty(n, dtype=np.int64)
     leaders = np.empty(n, dtype=np.int64)
     n_groups = _greedy_groups(
-        means, covs, labels, detection, counts_two, order, threshold, symmetric, label_rule,
-        resolution, has_resolution, max_groups, group_of, leaders,
+        means, covs, labels, detection, counts_two, order, threshold, symmetric, resolution,
+        has_resolution, max_groups, group_of, leaders,
     )
     if n_groups == n:  # nothing merged or dropped: the components as they are, in group order
         return weights[leaders], means[leaders], covs[leaders], labels[leaders], group_of
@@ -180,7 +179,6 @@ def _greedy_groups(  # pragma: no cover - compiled; tested through merge
     order: IntArray,
     threshold: float,
     symmetric: bool,
-    label_rule: bool,
     resolution: FloatArray,
     has_resolution: bool,
     max_groups: int,
@@ -224,7 +222,7 @@ def _greedy_groups(  # pragma: no cover - compiled; tested through merge
             if two_tracks:
                 # Two tracks' components: one target only when both were just detected and
                 # agree within their joint uncertainty.
-                if not (label_rule and detected_both):
+                if not detected_both:
                     continue
                 for k in range(dim):
                     diff[k] = means[i, k] - means[j, k]
