@@ -85,6 +85,7 @@ STANDING_P_MOVING = 0.1
 """A window at most this likely to move (odds of 9:1 on standing) is taken to stand (Eqs.
 edge_shift, held_gate)."""
 
+
 @dataclass(frozen=True, slots=True)
 class GpParams:
     """Hyperparameters of the per-axis SE-kernel GP over time, and the history window it reads.
