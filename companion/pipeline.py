@@ -193,16 +193,25 @@ class Pipeline:
         not in the flight's first step. This pipeline's state is left alone."""
         centre_xy = self.frame.area_xy_m.mean(axis=0)
         half_m = 10.0
-        region: Region = (Disk(centre_xy, half_m) if self.config.estimator.fov == "disk" else
-                          ConvexPolygon(centre_xy + half_m * np.array(
-                              [[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])))
+
+        def frame(xy: FloatArray) -> Region:
+            if self.config.estimator.fov == "disk":
+                return Disk(xy, half_m)
+            return ConvexPolygon(xy + half_m * np.array(
+                [[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]]))
+
         r_cov = np.eye(2) * 0.1
         state = self._initial_state(0.0)
         period_s = 1.0 / self.config.estimator.rate_hz
         for k in range(WARM_UP_STEPS):
             z = (centre_xy + np.array([0.1 * k, 0.0]))[None, :]
-            state, _ = step(state, Scan(k * period_s, region, z, r_cov, centre_xy),
+            state, _ = step(state, Scan(k * period_s, frame(centre_xy), z, r_cov, centre_xy),
                             self.params, self.gp)
+        # Then frames whose edge crosses the target, unseen (Eq. edge_shift's p(F)).
+        edge_xy = centre_xy + np.array([0.1 * (WARM_UP_STEPS - 1) + half_m, 0.0])
+        for k in range(WARM_UP_STEPS, WARM_UP_STEPS + 2):
+            state, _ = step(state, Scan(k * period_s, frame(edge_xy), np.zeros((0, 2)), r_cov,
+                                        edge_xy), self.params, self.gp)
 
     # -- checkpoints -------------------------------------------------------------------------
 

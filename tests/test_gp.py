@@ -495,3 +495,51 @@ def test_malformed_input_is_an_input_error() -> None:
         learn_gp_params([(t, y)], window=4)
     with pytest.raises(InputError, match="pair"):
         learn_gp_params([t], window=4)  # type: ignore[list-item]
+
+
+# ---------------------------------------------------------------------------------------------
+# predict: a confirmed track's component (Eq. edge_shift)
+# ---------------------------------------------------------------------------------------------
+
+
+def _track_prediction(
+    window_xy: FloatArray, shift_sd: float, keep: bool
+) -> tuple[FloatArray, FloatArray]:
+    """(GP mean at t = 31 s, predicted component mean) of one confirmed track whose window holds
+    window_xy (30, 2) detected at t = 1..30 s and whose component at t = 30 s sits shift_sd of
+    its standard deviation (0.5 m) east of the GP's mean there; `keep`: its edge shift."""
+    from companion.sat.mixture import Mixture  # noqa: PLC0415
+    from companion.sat.predict import predict  # noqa: PLC0415
+
+    params = GpParams(sigma_f_m=2.0, lengthscale_s=40.0, sigma_n_m=1.0, window=30,
+                      slope_sd_m_s=0.2)
+    t = np.arange(1.0, 31.0)[None, :]
+    fit = GpPredictor(params).fit(t, window_xy[None], np.array([30]))
+    gp_mean, _, _ = GpPredictor(params).predict(t, window_xy[None], np.array([30]), 30.0)
+    gp_next, _, _ = GpPredictor(params).predict(t, window_xy[None], np.array([30]), 31.0)
+    prior = Mixture(np.array([1.0]), gp_mean + np.array([[0.5 * shift_sd, 0.0]]),
+                    np.array([0.25 * np.eye(2)]), np.array([7]))
+    out = predict(prior, np.eye(2), np.zeros((2, 2)), 1.0, params, fit, np.array([7]),
+                  np.array([True]), 30.0, 31.0, keep_shift=np.array([keep]))
+    return gp_next[0], out.means[0]
+
+
+def test_a_standing_track_keeps_its_edge_shift_up_to_a_cap() -> None:
+    from companion.sat.predict import SHIFT_CAP_SD  # noqa: PLC0415
+
+    rng = np.random.default_rng(3)
+    still = 100.0 + rng.normal(0.0, 1.0, size=(30, 2))
+    small = 0.5 * SHIFT_CAP_SD
+    # Missed at the frame's edge: the component keeps what the misses said, up to the cap.
+    gp_next, mean = _track_prediction(still, small, keep=True)
+    assert mean[0] - gp_next[0] == pytest.approx(0.5 * small, abs=1e-9)
+    assert mean[1] == pytest.approx(gp_next[1], abs=1e-12)
+    gp_next, mean = _track_prediction(still, 3.0, keep=True)
+    assert mean[0] - gp_next[0] == pytest.approx(0.5 * SHIFT_CAP_SD, abs=1e-9)
+    # Otherwise (detected, or the frame elsewhere): the GP's mean, as the paper predicts.
+    gp_next, mean = _track_prediction(still, small, keep=False)
+    np.testing.assert_allclose(mean, gp_next, atol=1e-12)
+    # A walker's window (0.3 m/s east): its misses may be the walk, the GP's mean is kept.
+    walking = still + np.column_stack([0.3 * np.arange(30.0), np.zeros(30)])
+    gp_next, mean = _track_prediction(walking, small, keep=True)
+    np.testing.assert_allclose(mean, gp_next, atol=1e-12)

@@ -322,7 +322,7 @@ def _check_state(state: SatState, params: SatParams, report: StepReport, scan: S
         "ids": (t,), "hits": (t,), "life": (t,), "confirmed": (t,), "born_t_s": (t,),
         "last_t_s": (t,), "seen_t_s": (t,), "score": (t,), "alone": (t,), "means": (t, d),
         "covs": (t, d, d), "win_t_s": (t, w),
-        "win_xy": (t, w, 2), "win_count": (t,), "gp_mu": (t, 4), "gp_beta": (t, w, 2),
+        "win_xy": (t, w, 2), "win_count": (t,), "gp_mu": (t, 5), "gp_beta": (t, w, 2),
         "gp_ky_inv": (t, w, w),
     }
     for name, shape in shapes.items():

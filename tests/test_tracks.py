@@ -129,6 +129,30 @@ def test_confirmed_track_is_held_by_its_light_component_and_ends_after_the_timeo
     assert tracks.size == 0
 
 
+def test_a_held_still_track_is_not_taken_by_a_wide_estimate_that_no_detection_made() -> None:
+    tracks, labelled = _run([_mix([[0.0, 0.0]], [1.0])] * 3)
+    assert tracks.confirmed.tolist() == [True]
+    # Its own light component still holds the track; beside it lies a wide unlabelled estimate
+    # (prior mass spread for an hour, 15 m standard deviation) whose mean is 8 m away.
+    frame = make_mixture([0.3, 0.6], [[0.0, 0.0], [8.0, 0.0]],
+                         [labelled.covs[0], 225.0 * np.eye(2)], [0, NO_LABEL])
+    for detected, continues in ((False, False), (True, True)):
+        # Eq. held_gate: only an estimate a detection made may take the held track over.
+        after, relabelled = maintain(
+            tracks, frame, np.array([1]), np.array([False, detected]), 3.0, PARAMS
+        )
+        assert (relabelled.labels.tolist() == [NO_LABEL, 0]) is continues
+        held_mean = np.allclose(after.means[0], [0.0, 0.0])
+        assert held_mean is not continues
+        assert after.size == (1 if continues else 2)
+    # A walker's track (its window moves) may be continued by it: the walker may be there now.
+    walking = tracks._replace(gp_mu=np.column_stack([tracks.gp_mu[:, :-1], [1.0]]))
+    _, relabelled = maintain(
+        walking, frame, np.array([1]), np.array([False, False]), 3.0, PARAMS
+    )
+    assert relabelled.labels.tolist() == [NO_LABEL, 0]
+
+
 def test_log_views_are_immutable() -> None:
     log = TrackLog.empty(2)
     a = log.append(np.array([1]), 0.0, np.zeros((1, 2)), np.ones((1, 2, 2)))

@@ -29,7 +29,7 @@ from companion.sat.fov import (
     truncation_moments,
 )
 from companion.sat.gp import GpParams, GpPredictor
-from companion.sat.linalg import spd_2x2_faults_of
+from companion.sat.linalg import inv_det_2x2, spd_2x2_faults_of
 from companion.sat.mixture import Mixture
 from companion.sat.predict import LinearModel, predict, transition
 from companion.sat.reduce import merge_kernel, prune_kernel
@@ -47,6 +47,14 @@ from companion.sat.update import (
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
+
+EDGE_TOUCH = 1e-3
+"""A frame touches a track's edge when its Gaussian widened EDGE_REACH times has p(F) above this
+and its own Gaussian below 1 - EDGE_TOUCH (Eq. edge_shift)."""
+
+EDGE_REACH = 3.0
+"""How many standard deviations a track's misses may have moved it off its GP mean and the frame
+still count as touching it (Eq. edge_shift)."""
 
 
 class FilterKind(StrEnum):
@@ -220,7 +228,10 @@ def _scan_kernel(  # pragma: no cover - compiled; tested through step
     return finite_rows, pose_known, 0 if math.isfinite(a * d - b * c) else 4
 
 
-def _predict(state: SatState, dt_s: float, params: SatParams) -> Mixture:
+def _predict(
+    state: SatState, dt_s: float, params: SatParams, region: Region | None, z: FloatArray,
+    r_cov: FloatArray,
+) -> Mixture:
     """Linear prediction for every component, GP prediction for those of confirmed tracks.
 
     A confirmed track's component takes the GP mean at the new time (Eq. gp_prediction) over the
@@ -239,7 +250,77 @@ def _predict(state: SatState, dt_s: float, params: SatParams) -> Mixture:
     return predict(
         state.mixture, f, q, params.p_survive, params.gp, tracks.gp_fit(), tracks.ids,
         tracks.confirmed, state.t_s, state.t_s + dt_s, incremental=lmb_kind,
+        keep_shift=None if lmb_kind else _edge_shifts(
+            tracks, state.t_s, region, z, r_cov, params.tracks.gate_sq),
     )
+
+
+def _edge_shifts(
+    tracks: Tracks, t_s: float, region: Region | None, z: FloatArray, r_cov: FloatArray,
+    gate_sq: float,
+) -> BoolArray | None:
+    """The confirmed tracks not detected at t_s whose Gaussian the new frame touches and whose
+    gate (d^2 <= gate_sq under P + R) holds none of its measurements z: each may keep the shift
+    its misses gave its component (Eq. edge_shift, capped and only for a standing window in
+    `predict`), or None if there is none.
+
+    A miss at the frame's edge cuts the part of a component inside the frame and moves its mean
+    out (the moment rule); the GP prediction would put the mean back on the window of
+    detections, so that every further look at the same edge cut the same part again and wore
+    down the track of a target standing just outside. The shift is kept only while the frame
+    still touches the track: once it has moved on, the GP mean holds again. Nor is it kept when
+    the frame holds a detection in the track's gate: that detection says where the target is,
+    and a component kept off it would split into the part the detection updates and the part
+    it misses, two estimates of one target.
+    """
+    if region is None or not tracks.size:
+        return None
+    centre = region.centroid_xy
+    if isinstance(region, Disk):
+        outer_m = inner_m = region.radius_m
+    else:
+        outer_m = float(np.hypot(*(region.vertices_xy - centre).T).max())
+        inner_m = 0.0
+    rows = _edge_rows_kernel(tracks.confirmed, tracks.seen_t_s, t_s, tracks.means, tracks.covs,
+                             centre, outer_m, inner_m, EDGE_REACH)
+    if not rows.size:
+        return None
+    keep = np.zeros(tracks.size, dtype=np.bool_)
+    covs = tracks.covs[rows, :2, :2]
+    p_in = prob_in_region(np.concatenate([tracks.means[rows, :2]] * 2),
+                          np.concatenate([covs, EDGE_REACH**2 * covs]), region, check=False)
+    own, widened = p_in[: rows.size], p_in[rows.size :]
+    keep[rows] = (widened > EDGE_TOUCH) & (own < 1.0 - EDGE_TOUCH)  # Eq. edge_shift
+    if z.shape[0]:
+        diff = z[None, :, :] - tracks.means[rows, None, :2]
+        inv, _ = inv_det_2x2(covs + r_cov)
+        near = np.einsum("rmi,rij,rmj->rm", diff, inv, diff) <= gate_sq
+        keep[rows] &= ~near.any(axis=1)
+    return keep
+
+
+@kernel
+def _edge_rows_kernel(  # pragma: no cover - compiled; tested through step
+    confirmed: BoolArray, seen_t_s: FloatArray, t_s: float, means: FloatArray,
+    covs: FloatArray, centre_xy: FloatArray, outer_m: float, inner_m: float, reach: float,
+) -> IntArray:
+    """The confirmed tracks not detected at t_s that a frame's edge may cross (Eq. edge_shift):
+    the others are decided without p(F), by bounds exact for EDGE_TOUCH = 1e-3. A Gaussian whose
+    largest standard deviation sd fits 3.72 sd inside the disk of radius inner_m round
+    centre_xy (inside the frame) has p(F) > 0.999; one farther than 3.1 widened sd (reach sd)
+    outside the disk of radius outer_m (round the frame) has p(F) < 1e-3."""
+    out = np.empty(confirmed.shape[0], dtype=np.int64)
+    n = 0
+    for r in range(confirmed.shape[0]):
+        if not confirmed[r] or seen_t_s[r] >= t_s:
+            continue
+        a, b, c = covs[r, 0, 0], covs[r, 0, 1], covs[r, 1, 1]
+        sd = math.sqrt(0.5 * (a + c) + math.hypot(0.5 * (a - c), b))
+        gap = math.hypot(means[r, 0] - centre_xy[0], means[r, 1] - centre_xy[1])
+        if gap - outer_m < 3.1 * reach * sd and inner_m - gap < 3.72 * sd:
+            out[n] = r
+            n += 1
+    return out[:n]
 
 
 def step(
@@ -257,7 +338,7 @@ def step(
     # Every input is checked here, so that a bad scan raises InputError and nothing else.
     z, dropped, sensor_xy, region, r_cov = _checked_scan(scan, state, params)
 
-    predicted = _predict(state, scan.t_s - state.t_s, params)
+    predicted = _predict(state, scan.t_s - state.t_s, params, region, z, r_cov)
     if params.kind is FilterKind.LMB:
         predicted = lmb.grow_unseen(predicted, state.tracks, state.t_s, scan.t_s, params.tracks)
         mixture, tracks, estimates = lmb.step(

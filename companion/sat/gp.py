@@ -81,6 +81,11 @@ def _check_positive(name: str, value: float, zero: bool = False) -> None:
         raise InputError(f"GP {name} must be finite and {'>=' if zero else '>'} 0, got {value!r}")
 
 
+STANDING_P_MOVING = 0.1
+"""A window at most this likely to move (odds of 9:1 on standing) is taken to stand (Eqs.
+edge_shift, held_gate)."""
+
+
 @dataclass(frozen=True, slots=True)
 class GpParams:
     """Hyperparameters of the per-axis SE-kernel GP over time, and the history window it reads.
@@ -173,11 +178,11 @@ def _trend(params: GpParams, rel_s: FloatArray, y: FloatArray) -> tuple[FloatArr
     diff = (rel_s[:, None] - rel_s[None, :]) / params.lengthscale_s
     ky = params.sigma_f_m**2 * np.exp(-0.5 * diff * diff)  # Eq. gp_kernel
     ky[np.diag_indices(rel_s.size)] += params.sigma_n_m**2
-    out = np.empty(2 * y.shape[1])
+    out = np.empty(2 * y.shape[1] + 1)
     ky_inv = np.asarray(np.linalg.inv(ky), dtype=np.float64)
     beta = np.zeros(y.shape)
     _trend_kernel(ky_inv, rel_s, np.ascontiguousarray(y), params.slope_sd_m_s**2, out, beta)
-    return out[: y.shape[1]], out[y.shape[1] :]
+    return out[: y.shape[1]], out[y.shape[1] : 2 * y.shape[1]]
 
 
 def _check_t_star(t_star_s: float) -> float:
@@ -241,12 +246,13 @@ def gp_predict(
 class GpFit(NamedTuple):
     """What prediction needs of T right-aligned windows, computed once per window.
 
-    mu (T, 2d) is the prior mean's intercept a (the first d columns) and slope b (the last d,
-    zero for a constant mean) at the window's newest time t_n, beta (T, W, d) = Ky^-1 (y -
-    mu(K)) and ky_inv (T, W, W) = Ky^-1 with Ky = K(K, K) + sigma_n^2 I, all zero outside a
-    row's last counts[i] columns; then at any time t*, with k = K(t*, K): mean = a + b min(t* -
-    t_n, 0) + k^T beta (Eqs. gp_trend, gp_prediction), velocity = b + (dk/dt*)^T beta and
-    variance = sigma_f^2 - k^T Ky^-1 k, a few products per row.
+    mu (T, 2d + 1) is the prior mean's intercept a (the first d columns) and slope b (the next
+    d, zero for a constant mean) at the window's newest time t_n, then the probability that the
+    window's target moves (the trend's moving model; 0 for a constant mean), beta (T, W, d) =
+    Ky^-1 (y - mu(K)) and ky_inv (T, W, W) = Ky^-1 with Ky = K(K, K) + sigma_n^2 I, all zero
+    outside a row's last counts[i] columns; then at any time t*, with k = K(t*, K): mean = a +
+    b min(t* - t_n, 0) + k^T beta (Eqs. gp_trend, gp_prediction), velocity = b + (dk/dt*)^T
+    beta and variance = sigma_f^2 - k^T Ky^-1 k, a few products per row.
     """
 
     t_s: FloatArray  # (T, W)
@@ -261,7 +267,7 @@ class GpFit(NamedTuple):
         return GpFit(
             np.zeros((0, width)),
             np.zeros(0, dtype=np.int64),
-            np.zeros((0, 2 * dim)),
+            np.zeros((0, 2 * dim + 1)),
             np.zeros((0, width, dim)),
             np.zeros((0, width, width)),
         )
@@ -399,7 +405,7 @@ def _fit_kernel(  # pragma: no cover - compiled; tested through GpPredictor.fit
     ky_inv: FloatArray,
 ) -> bool:
     """Fit the windows `rows` of t_s (T, W) [s], y (T, W, d) [m] with counts[i] valid points
-    into those rows of mu (T, 2d), beta (T, W, d) and ky_inv (T, W, W), in place (see GpFit),
+    into those rows of mu (T, 2d + 1), beta (T, W, d) and ky_inv (T, W, W), in place (see GpFit),
     with the trend's slope prior variance sb2 (0: a constant mean);
     False if a Ky is not positive definite to working precision.
 
@@ -459,6 +465,7 @@ def _fit_kernel(  # pragma: no cover - compiled; tested through GpPredictor.fit
                 total += y[i, w, d]
             mu[i, d] = total / c  # constant prior mean: the window's mean
             mu[i, dim + d] = 0.0
+        mu[i, 2 * dim] = 0.0  # no trend: the window is taken to stand
         for w in range(first, width):
             for d in range(dim):
                 acc = 0.0
@@ -473,8 +480,8 @@ def _trend_kernel(  # pragma: no cover - compiled; tested through GpPredictor.fi
     ky_inv: FloatArray, rel_q: FloatArray, y: FloatArray, sb2: float, out: FloatArray,
     beta: FloatArray,
 ) -> None:
-    """out <- (intercept (d,), slope (d,)) of one window's prior mean (Eq. gp_trend) and beta
-    (c, d) <- Ky^-1 (y - mu(K)), for times rel_q (c,) [s], positions y (c, d) [m] and Ky^-1
+    """out <- (intercept (d,), slope (d,), P(moving)) of one window's prior mean (Eq. gp_trend)
+    and beta (c, d) <- Ky^-1 (y - mu(K)), for times rel_q (c,) [s], positions y (c, d) [m] and Ky^-1
     (c, c): the mean averaged over a standing model (slope 0, the window's mean) and a moving one
     (slope ~ N(0, sb2) per axis, a flat prior on the intercept, by generalised least squares),
     each weighted by its posterior probability at even prior odds. One pass over Ky^-1 forms
@@ -535,6 +542,7 @@ def _trend_kernel(  # pragma: no cover - compiled; tested through GpPredictor.fi
         out[dim + d] = p_moving * moving_slope
         for w in range(c):
             beta[w, d] -= offset * u[w] + out[dim + d] * v[w]
+    out[2 * dim] = p_moving
 
 
 @kernel
@@ -710,7 +718,7 @@ class GpPredictor:
         """fit() after its checks."""
         n_rows, width = t_arr.shape
         t_w = np.ascontiguousarray(t_arr, dtype=np.float64)
-        mu = np.empty((n_rows, 2 * y_arr.shape[2]))
+        mu = np.empty((n_rows, 2 * y_arr.shape[2] + 1))
         beta = np.empty(y_arr.shape)
         ky_inv = np.zeros((n_rows, width, width))
         self._reserve(n_rows)

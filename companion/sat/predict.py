@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from enum import Enum
 from functools import lru_cache
 
@@ -9,10 +10,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.kernel_cache import kernel
-from companion.sat.gp import GpFit, GpParams, gp_predict_rows
+from companion.sat.gp import STANDING_P_MOVING, GpFit, GpParams, gp_predict_rows
 from companion.sat.mixture import Mixture
 
 FloatArray = NDArray[np.float64]
+
+SHIFT_CAP_SD = 0.5
+"""The most a kept edge shift may be, in standard deviations of the component (Eq. edge_shift)."""
 
 _VAR_FLOOR_REL = 1e-12
 """Relative increase of every variance in a constant-velocity prediction (see predict)."""
@@ -68,6 +72,7 @@ def predict(
     t_before_s: float = 0.0,
     t_now_s: float = 0.0,
     incremental: bool = False,
+    keep_shift: NDArray[np.bool_] | None = None,
 ) -> Mixture:
     """w = p_S w, m = F m, P = F P F^T + Q for every component (Vo & Ma Table 1, step 2); with a
     GP fit of the tracks' windows, the components of confirmed tracks by their GP instead.
@@ -78,13 +83,18 @@ def predict(
     t_before_s to t_now_s, in place of the linear model's Q; `incremental` moves its prior mean
     by the GP mean's change instead. In a constant-velocity state the derivative of the GP mean
     becomes the velocity mean and the velocity block keeps its linear prediction.
+    A track whose row of `keep_shift` (aligned with track_ids) is set and whose window stands
+    (P(moving) <= STANDING_P_MOVING) keeps the shift of its component's mean off the GP mean at
+    t_before_s, up to SHIFT_CAP_SD of the component's standard deviation (Eq. edge_shift).
     """
     if fit is None or track_ids is None or confirmed is None:
         fit, track_ids, confirmed = _NO_FIT, _NO_TRACKS, _NO_CONFIRMED
+    if keep_shift is None:
+        keep_shift = np.zeros(track_ids.shape[0], dtype=np.bool_)
     weights, means, covs = _predict_kernel(
         prior.weights, prior.means, prior.covs, prior.labels, f, q, p_survive, track_ids,
         confirmed, fit.t_s, fit.counts, fit.mu, fit.beta, fit.ky_inv, gp.sigma_f_m**2,
-        gp.lengthscale_s, t_before_s, t_now_s, incremental,
+        gp.lengthscale_s, t_before_s, t_now_s, incremental, keep_shift,
     )
     return Mixture(weights, means, covs, prior.labels)
 
@@ -115,6 +125,7 @@ def _predict_kernel(  # pragma: no cover - compiled; tested through predict
     t_before: float,
     t_now: float,
     incremental: bool,
+    keep_shift: NDArray[np.bool_],
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """The predicted (weights, means, covs), see predict."""
     n, d = means.shape
@@ -149,7 +160,8 @@ def _predict_kernel(  # pragma: no cover - compiled; tested through predict
                 p_out[i, a, a] *= 1.0 + _VAR_FLOOR_REL
     if track_ids.shape[0]:
         _apply_gp_kernel(labels, means, covs, track_ids, confirmed, t_s, count, mu, beta,
-                         ky_inv, sf2, lam, t_before, t_now, incremental, m_out, p_out)
+                         ky_inv, sf2, lam, t_before, t_now, incremental, keep_shift, m_out,
+                         p_out)
     w_out = weights if p_survive == 1.0 else p_survive * weights  # 1 w = w exactly
     return w_out, m_out, p_out
 
@@ -171,6 +183,7 @@ def _apply_gp_kernel(  # pragma: no cover - compiled; tested through predict
     t_before: float,
     t_now: float,
     incremental: bool,
+    keep_shift: NDArray[np.bool_],
     means: FloatArray,
     covs: FloatArray,
 ) -> None:
@@ -199,6 +212,17 @@ def _apply_gp_kernel(  # pragma: no cover - compiled; tested through predict
             means[j, 1] = prior_means[j, 1] + mean[0, 0, 1] - mean[1, 0, 1]
         else:
             means[j, 0], means[j, 1] = mean[0, 0, 0], mean[0, 0, 1]
+            if keep_shift[r] and mu[r, mu.shape[1] - 1] <= STANDING_P_MOVING:
+                # Eq. edge_shift: the misses' shift off the GP mean at t_before, capped
+                s0 = prior_means[j, 0] - mean[1, 0, 0]
+                s1 = prior_means[j, 1] - mean[1, 0, 1]
+                a, b, c = prior_covs[j, 0, 0], prior_covs[j, 0, 1], prior_covs[j, 1, 1]
+                det = a * c - b * b
+                if det > 0.0:
+                    d2 = (c * s0 * s0 - 2.0 * b * s0 * s1 + a * s1 * s1) / det
+                    scale = 1.0 if d2 <= SHIFT_CAP_SD**2 else SHIFT_CAP_SD / math.sqrt(d2)
+                    means[j, 0] += scale * s0
+                    means[j, 1] += scale * s1
         covs[j, 0, 0] = prior_covs[j, 0, 0] + growth
         covs[j, 1, 1] = prior_covs[j, 1, 1] + growth
         covs[j, 0, 1], covs[j, 1, 0] = prior_covs[j, 0, 1], prior_covs[j, 1, 0]

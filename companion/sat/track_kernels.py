@@ -56,6 +56,8 @@ def associate(
     gate_sq: float,
     alone: BoolArray,
     clutter_per_m2: float,
+    held: BoolArray,
+    est_detected: BoolArray,
 ) -> IntArray:
     """For each estimate, the row of the track it continues, or -1 (track ids sorted).
 
@@ -64,7 +66,9 @@ def associate(
     gate with (distance <= gate_sq), nearest pairs first (ties by track row, then estimate); a
     track coasting alone (`alone`, on its grown covariance) gates only with an estimate it
     explains better than clutter does, N(m_e; m_t, P_t + P_e) > clutter_per_m2 (Eq.
-    coast_gate).
+    coast_gate); a track of a standing target that a component of its own lineage still holds
+    (`held`) gates only with an estimate that a detection made (`est_detected`): an estimate no
+    detection made says nothing new of where a still target is (Eq. held_gate).
     """
     n_tracks = track_ids.shape[0]
     n_est = est_labels.shape[0]
@@ -94,6 +98,8 @@ def associate(
         if claimed[r]:
             continue
         for e in free:
+            if held[r] and not est_detected[e]:
+                continue  # Eq. held_gate
             d = _gate_sq(track_means[r], track_covs[r], est_means[e], est_covs[e])
             if d <= gate_sq and (not alone[r] or _density(  # Eq. coast_gate
                     d, track_covs[r], est_covs[e]) > clutter_per_m2):
@@ -130,7 +136,7 @@ def support_of(
     track_ids: IntArray, track_means: FloatArray, track_covs: FloatArray, confirmed: BoolArray,
     moving: bool, est_rows: IntArray, labels: IntArray, means: FloatArray, covs: FloatArray,
     weights: FloatArray, detected: BoolArray, gate_sq: float, alone: BoolArray,
-    clutter_per_m2: float,
+    clutter_per_m2: float, standing: BoolArray,
 ) -> tuple[IntArray, BoolArray, IntArray, IntArray, BoolArray, IntArray]:
     """Which component supports each track this step, from the estimates (mixture rows est_rows)
     and the mixture's labels: (supported_by (T,) mixture row or -1, hit (T,) supported by a
@@ -140,12 +146,18 @@ def support_of(
     An estimate continues the track `associate` gives it; a confirmed track with no estimate is
     held by the heaviest component labelled with its id (`_hold`); a track is hit when the
     estimate that continues it owes its weight to a detection; a confirmed track of moving
-    targets that nothing supports coasts.
+    targets that nothing supports coasts. `standing` (T,): the tracks whose windows stand
+    (Eq. held_gate).
     """
     n_tracks = track_ids.shape[0]
+    held = np.zeros(n_tracks, dtype=np.bool_)
+    if n_tracks:
+        for i in range(labels.shape[0]):
+            r = min(np.searchsorted(track_ids, labels[i]), n_tracks - 1)
+            held[r] |= track_ids[r] == labels[i] and standing[r]
     assigned = associate(  # Eq. gate, Panta et al.'s association
         track_ids, track_means, track_covs, labels[est_rows], means[est_rows], covs[est_rows],
-        gate_sq, alone, clutter_per_m2,
+        gate_sq, alone, clutter_per_m2, held, detected[est_rows],
     )
     supported_by = np.full(n_tracks, -1, dtype=np.int64)
     hit = np.zeros(n_tracks, dtype=np.bool_)

@@ -37,7 +37,7 @@ from numpy.typing import NDArray
 
 from companion.sat import track_kernels as kernels
 from companion.sat.fov import Disk, Region, prob_in_region, truncation_moments
-from companion.sat.gp import GpFit, GpPredictor
+from companion.sat.gp import STANDING_P_MOVING, GpFit, GpPredictor
 from companion.sat.linalg import inv_det_2x2
 from companion.sat.mixture import Mixture
 from companion.sat.motion import TargetMotion, iou_variance_m2
@@ -161,7 +161,7 @@ class Tracks(NamedTuple):
     win_t_s: FloatArray  # (T, W) times of the most recent detections, right-aligned
     win_xy: FloatArray  # (T, W, 2) positions at those detections, right-aligned
     win_count: IntArray  # (T,) valid entries at the right of the window
-    gp_mu: FloatArray  # (T, 4) GP fit of each window (see GpFit), refitted when it changes
+    gp_mu: FloatArray  # (T, 5) GP fit of each window (see GpFit), refitted when it changes
     gp_beta: FloatArray  # (T, W, 2)
     gp_ky_inv: FloatArray  # (T, W, W)
     log: TrackLog
@@ -190,7 +190,7 @@ class Tracks(NamedTuple):
             win_t_s=np.zeros((0, window)),
             win_xy=np.zeros((0, window, 2)),
             win_count=np.zeros(0, dtype=np.int64),
-            gp_mu=np.zeros((0, 4)),
+            gp_mu=np.zeros((0, 5)),
             gp_beta=np.zeros((0, window, 2)),
             gp_ky_inv=np.zeros((0, window, window)),
             log=TrackLog.empty(dim),
@@ -325,6 +325,7 @@ def maintain(
         gating.ids, gating.means, gating.covs, tracks.confirmed, params.motion.speed_m_s > 0.0,
         est_rows, mix.labels, mix.means, mix.covs, mix.weights, detected, params.gate_sq,
         tracks.alone, 0.0 if evidence is None else evidence.clutter_per_m2,
+        tracks.gp_mu[:, -1] <= STANDING_P_MOVING,
     )
     updated, alive, labels, n_alive, n_new, decided = _support(
         tracks, rows, missed, supported_by, hit, coasting, mix, t_s, params, evidence
